@@ -1,0 +1,228 @@
+"""The YAML configuration: one JSON Schema holds the keys, defaults and checks.
+
+The schema is exported to ``configs/schema.json`` (``pointmark schema``) for
+the Snakefile and for editors.  A config is read, overridden with
+``--set NAME=VALUE`` (a key's own name, or its dotted path when the name is
+ambiguous), filled with defaults and validated; unknown keys are rejected
+with their path.  Secrets are not config: only a key id and a key file path.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+from dataclasses import fields
+from pathlib import Path
+
+import yaml
+
+from .watermark import DetectParams, WatermarkParams
+
+__all__ = ["ConfigError", "SCHEMA", "load_config", "watermark_params", "detect_params",
+           "schema_json"]
+
+
+class ConfigError(ValueError):
+    """A config that cannot be used (the message names the key and the fix)."""
+
+
+def _p(kind, default, description, **extra):
+    prop = {"description": description, "default": default}
+    if isinstance(kind, tuple):
+        prop["type"] = list(kind)      # a union of JSON types
+    elif isinstance(kind, list):
+        prop["enum"] = kind
+    elif kind is not None:
+        prop["type"] = kind
+    prop.update(extra)
+    return prop
+
+
+def _section(description, props, required=()):
+    return {"type": "object", "description": description, "additionalProperties": False,
+            "properties": props, "default": {}, "required": list(required)}
+
+
+_SEEDS = {
+    "description": "Seed points: null (farthest-point sampling), point indices, or [x, y, z] coordinates.",
+    "default": None,
+    "oneOf": [
+        {"type": "null"},
+        {"type": "array", "items": {"type": "integer", "minimum": 0}, "minItems": 1},
+        {"type": "array", "items": {"type": "array", "items": {"type": "number"},
+                                    "minItems": 3, "maxItems": 3}, "minItems": 1},
+    ],
+}
+
+WATERMARK = _section("Embedding parameters (paper, section 2.2).", {
+    "n_bits": _p("integer", 32, "Payload bits m.", minimum=1, maximum=256),
+    "chip_rate": _p("integer", 10, "Chip rate c: copies of each bit.", minimum=1, maximum=1000),
+    "beta": _p("number", 0.002, "Amplitude ratio: alpha = beta * largest bbox side.",
+               exclusiveMinimum=0, maximum=0.1),
+    "valence": _p("number", 12, "Average valence N_n of the radius mesh.", exclusiveMinimum=0,
+                  maximum=200),
+    "n_clusters": _p("integer", 5, "Number of clusters (ignored with cover).", minimum=1),
+    "cluster_size": _p("integer", 4000, "Size limit of each cluster.", minimum=16),
+    "seeds": _SEEDS,
+    "on_touch": _p(["stop", "skip"], "skip",
+                   "A growing cluster that meets another: stop (the paper's rule) or pass around it."),
+    "cover": _p("boolean", False, "Cover the whole model with clusters of cluster_size."),
+    "chip_layout": _p(["consecutive", "interleaved"], "consecutive",
+                      "Chips of a bit on consecutive coefficients (paper) or spread by the key."),
+    "first_coefficient": _p("integer", 0, "Index of the first modulated coefficient.", minimum=0),
+    "crc_bits": _p("integer", 0, "CRC bits appended to the payload (0, 8 or 16).", enum=[0, 8, 16]),
+})
+
+DETECTION = _section("Detection (paper, section 2.2, Extraction).", {
+    "registration": _p(["none", "paper", "robust"], "robust",
+                       "none; paper: covariance frames; robust: frame hypotheses + ICP with scale."),
+    "correspondence": _p(["paper", "spectral"], "spectral",
+                         "paper: nearest point under d_r; spectral: least-squares fit of coefficients."),
+    "p_threshold": _p("number", 1e-6, "Report 'watermarked' when p_value < p_threshold.",
+                      exclusiveMinimum=0, maximum=1),
+    "iterations": _p("integer", 2, "Least-squares refits (spectral).", minimum=1, maximum=20),
+    "ridge": _p("number", 1.0, "Relative ridge of the least-squares fit (spectral).", minimum=0),
+    "tangential_gate": _p("number", 0.25,
+                          "Use tangential misfit of matches closer than this many spacings.", minimum=0),
+})
+
+KEY = _section("Key identity; the secret itself comes from POINTMARK_SECRET or secret_file.", {
+    "id": _p(("string", "null"), None, "Key id (public name of the key)."),
+    "secret_file": _p(("string", "null"), None, "Path of a file holding the master secret."),
+})
+
+SCHEMA = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "$id": "https://pointmark.invalid/config.schema.json",
+    "title": "pointmark configuration",
+    "type": "object",
+    "additionalProperties": False,
+    "properties": {"watermark": WATERMARK, "detection": DETECTION, "key": KEY},
+}
+
+
+def register_section(name, section):
+    """Add a top-level section to the schema (used by the catalogue modules)."""
+    SCHEMA["properties"][name] = section
+
+
+def schema_json():
+    """The schema as JSON text (what ``configs/schema.json`` holds)."""
+    return json.dumps(SCHEMA, indent=2, sort_keys=False) + "\n"
+
+
+def _defaults(schema):
+    out = {}
+    for name, prop in schema.get("properties", {}).items():
+        if prop.get("type") == "object" and "properties" in prop:
+            out[name] = _defaults(prop)
+        else:
+            out[name] = copy.deepcopy(prop.get("default"))
+    return out
+
+
+def _merge(base, top):
+    for k, v in top.items():
+        if isinstance(v, dict) and isinstance(base.get(k), dict):
+            _merge(base[k], v)
+        else:
+            base[k] = v
+    return base
+
+
+def _leaf_paths(schema, prefix=()):
+    for name, prop in schema.get("properties", {}).items():
+        if prop.get("type") == "object" and "properties" in prop:
+            yield from _leaf_paths(prop, prefix + (name,))
+        else:
+            yield prefix + (name,)
+
+
+def _apply_set(cfg, assignment):
+    if "=" not in assignment:
+        raise ConfigError(f"--set {assignment!r}: expected NAME=VALUE")
+    name, raw = assignment.split("=", 1)
+    paths = [p for p in _leaf_paths(SCHEMA) if ".".join(p) == name or p[-1] == name]
+    exact = [p for p in paths if ".".join(p) == name]
+    paths = exact or paths
+    if not paths:
+        raise ConfigError(f"--set {name}: no such config key")
+    if len(paths) > 1:
+        options = ", ".join(".".join(p) for p in paths)
+        raise ConfigError(f"--set {name}: ambiguous, use one of {options}")
+    node = cfg
+    for part in paths[0][:-1]:
+        node = node.setdefault(part, {})
+    node[paths[0][-1]] = yaml.safe_load(raw)
+
+
+def load_config(path=None, overrides=()):
+    """Read, override, fill and validate a config.
+
+    Parameters
+    ----------
+    path : str or Path, optional
+        YAML file; none gives the defaults.
+    overrides : iterable of str
+        ``NAME=VALUE`` assignments.
+
+    Returns
+    -------
+    dict
+    """
+    user = {}
+    if path is not None:
+        path = Path(path)
+        if not path.is_file():
+            raise ConfigError(f"{path}: config file not found")
+        try:
+            user = yaml.safe_load(path.read_text()) or {}
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"{path}: not valid YAML: {exc}") from None
+        if not isinstance(user, dict):
+            raise ConfigError(f"{path}: the config must be a mapping of sections")
+    for assignment in overrides:
+        _apply_set(user, assignment)
+    validate(user, source=str(path) if path else "config")
+    cfg = _merge(_defaults(SCHEMA), user)
+    validate(cfg, source=str(path) if path else "config")
+    return cfg
+
+
+def validate(cfg, source="config"):
+    """Raise :class:`ConfigError` naming the first invalid key."""
+    import jsonschema
+
+    validator = jsonschema.Draft202012Validator(SCHEMA)
+    errors = sorted(validator.iter_errors(cfg), key=lambda e: list(e.absolute_path))
+    if errors:
+        err = errors[0]
+        where = ".".join(str(p) for p in err.absolute_path) or "(top level)"
+        raise ConfigError(f"{source}: {where}: {_explain(err)}")
+
+
+def _explain(err):
+    if err.validator == "additionalProperties":
+        extra = sorted(set(err.instance) - set(err.schema.get("properties", {})))
+        known = ", ".join(sorted(err.schema.get("properties", {})))
+        return f"unknown key(s) {', '.join(extra)}; known keys: {known}"
+    return err.message
+
+
+def watermark_params(cfg):
+    """WatermarkParams from a validated config."""
+    values = dict(cfg["watermark"])
+    seeds = values.get("seeds")
+    values["seeds"] = None if seeds is None else tuple(
+        tuple(s) if isinstance(s, list) else s for s in seeds)
+    return WatermarkParams(**values)
+
+
+def detect_params(cfg):
+    """DetectParams from a validated config."""
+    return DetectParams(**cfg["detection"])
+
+
+def dataclass_keys():
+    """Field names of the parameter dataclasses, to check the schema against them."""
+    return ({f.name for f in fields(WatermarkParams)}, {f.name for f in fields(DetectParams)})

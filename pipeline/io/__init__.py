@@ -1,0 +1,1 @@
+"""Files: point-cloud formats, secrets and Parquet manifests. The only package that touches files."""

@@ -1,0 +1,70 @@
+"""Key-seeded pseudo-random sequences (the paper's PRNS p_i), from HMAC-SHA256.
+
+The master secret never leaves the process that read it: a per-key-id
+``key material`` is derived once, and every sequence (per cluster, per axis)
+is drawn from that material in counter mode.  The result depends only on the
+bytes hashed, so it is the same on every platform and library version.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+
+import numpy as np
+
+__all__ = ["derive_key_material", "fingerprint", "pseudo_random_signs", "key_permutation"]
+
+
+def derive_key_material(secret, key_id):
+    """32 bytes of key material for one key id, derived from the master secret.
+
+    Parameters
+    ----------
+    secret : bytes
+    key_id : str
+
+    Returns
+    -------
+    bytes, length 32
+    """
+    if not secret:
+        raise ValueError("the master secret is empty")
+    return hmac.new(secret, b"pointmark/key/" + key_id.encode("utf-8"), hashlib.sha256).digest()
+
+
+def fingerprint(secret):
+    """A short public fingerprint of the master secret (16 hex digits)."""
+    return hashlib.sha256(b"pointmark/fingerprint/" + secret).hexdigest()[:16]
+
+
+def _stream(material, label, n_bytes):
+    out = bytearray()
+    counter = 0
+    while len(out) < n_bytes:
+        msg = label.encode("utf-8") + b"/" + counter.to_bytes(8, "big")
+        out += hmac.new(material, msg, hashlib.sha256).digest()
+        counter += 1
+    return np.frombuffer(bytes(out[:n_bytes]), dtype=np.uint8)
+
+
+def pseudo_random_signs(material, label, length):
+    """A +-1 sequence of ``length`` chips for ``label`` (e.g. "cluster=0/axis=1").
+
+    Returns
+    -------
+    (length,) int8 in {-1, +1}
+    """
+    bits = np.unpackbits(_stream(material, "signs/" + label, (length + 7) // 8))[:length]
+    return (2 * bits.astype(np.int8) - 1).astype(np.int8)
+
+
+def key_permutation(material, label, length):
+    """A key-dependent permutation of ``range(length)`` (for interleaving chips).
+
+    Returns
+    -------
+    (length,) int64
+    """
+    keys = _stream(material, "perm/" + label, 8 * length).view(">u8")
+    return np.argsort(keys, kind="stable").astype(np.int64)

@@ -1,0 +1,190 @@
+"""Spread-spectrum modulation of spectral coefficients (paper, equations 2-5).
+
+Embedding: each payload bit a_j is repeated ``chip_rate`` times (eq. 2),
+mapped to b'_i in {-1, 1} (eq. 3), multiplied by the key's sequence p_i and
+the amplitude alpha, and added to the spectral coefficients of x, y and z
+(eq. 4).  Detection correlates the coefficient differences with the same
+sequence (eq. 5).
+
+The "layout" maps chip i to a coefficient: ``consecutive`` is the paper's
+(chips of bit j on coefficients j*c ... (j+1)*c - 1); ``interleaved`` spreads
+each bit over the whole band with a key-dependent permutation, so no bit sits
+only on the noisiest or the most registration-sensitive frequencies.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import stats
+
+__all__ = [
+    "hex_to_bits", "bits_to_hex", "crc_bits", "chips", "spread", "despread",
+    "combine_scores", "p_value_present", "p_value_payload",
+]
+
+_CRC_POLYS = {8: 0x07, 16: 0x1021}
+
+
+def hex_to_bits(message, n_bits):
+    """Payload bits of a HEX string, most significant bit first.
+
+    Parameters
+    ----------
+    message : str
+        Hexadecimal, optionally prefixed ``0x``.
+    n_bits : int
+
+    Returns
+    -------
+    (n_bits,) uint8
+    """
+    text = message.lower().removeprefix("0x")
+    try:
+        value = int(text, 16)
+    except ValueError:
+        raise ValueError(f"message {message!r} is not hexadecimal") from None
+    if value >= 1 << n_bits:
+        raise ValueError(
+            f"message {message!r} needs {value.bit_length()} bits, more than the payload "
+            f"capacity n_bits={n_bits}; shorten it or raise n_bits"
+        )
+    return np.array([(value >> (n_bits - 1 - i)) & 1 for i in range(n_bits)], dtype=np.uint8)
+
+
+def bits_to_hex(bits):
+    """HEX string (MSB first, zero-padded to whole digits) of a bit vector."""
+    bits = np.asarray(bits, dtype=np.int64)
+    value = 0
+    for b in bits:
+        value = (value << 1) | int(b)
+    return format(value, f"0{(len(bits) + 3) // 4}x")
+
+
+def crc_bits(bits, width):
+    """CRC of a bit vector (CRC-8 poly 0x07, CRC-16-CCITT poly 0x1021), MSB first.
+
+    Returns
+    -------
+    (width,) uint8
+    """
+    if width == 0:
+        return np.zeros(0, dtype=np.uint8)
+    poly = _CRC_POLYS[width]
+    top = 1 << (width - 1)
+    mask = (1 << width) - 1
+    reg = 0
+    for b in np.asarray(bits, dtype=np.int64):
+        feedback = ((reg & top) != 0) ^ bool(b)
+        reg = ((reg << 1) & mask) ^ (poly if feedback else 0)
+    return np.array([(reg >> (width - 1 - i)) & 1 for i in range(width)], dtype=np.uint8)
+
+
+def chips(bits, chip_rate):
+    """Chip sequence b' of equations 2 and 3.
+
+    Parameters
+    ----------
+    bits : (m,) {0, 1}
+    chip_rate : int
+
+    Returns
+    -------
+    (m * chip_rate,) float in {-1, +1}
+    """
+    return np.repeat(2.0 * np.asarray(bits, dtype=np.float64) - 1.0, chip_rate)
+
+
+def spread(bits, chip_rate, sequences, amplitude, positions):
+    """Coefficient changes of equation 4 for one cluster.
+
+    Parameters
+    ----------
+    bits : (m,) {0, 1}
+    chip_rate : int
+    sequences : (3, m * chip_rate) {-1, +1}
+        The key's sequence p_i for the spectral axes s, t, u (x, y, z).
+    amplitude : float
+        alpha = beta * phi.
+    positions : (m * chip_rate,) int
+        Coefficient index of each chip (the layout).
+
+    Returns
+    -------
+    delta : (n_coefficients, 3) float, n_coefficients = positions.max() + 1
+    """
+    b = chips(bits, chip_rate)
+    delta = np.zeros((int(positions.max()) + 1, 3))
+    delta[positions, :] = amplitude * (b[None, :] * sequences).T
+    return delta
+
+
+def despread(delta, chip_rate, sequences, positions):
+    """Correlator of equation 5, with the statistics a p-value needs.
+
+    Parameters
+    ----------
+    delta : (n_coefficients, 3) float
+        Estimated coefficient differences r-hat - r.
+    chip_rate : int
+    sequences : (3, m * chip_rate)
+    positions : (m * chip_rate,) int
+
+    Returns
+    -------
+    q : (m,) float
+        q_j of equation 5 (sign gives the bit).
+    energy : (m,) float
+        Sum of squared differences that q_j sums over; under "no watermark of
+        this key", q_j * 3 has mean 0 and variance ``energy`` given the data.
+    """
+    d = delta[positions, :].T  # (3, m*c)
+    m = d.shape[1] // chip_rate
+    products = (d * sequences).reshape(3, m, chip_rate)
+    q = products.sum(axis=(0, 2)) / 3.0
+    energy = (d**2).reshape(3, m, chip_rate).sum(axis=(0, 2))
+    return q, energy
+
+
+def combine_scores(q, energy, weights=None):
+    """Soft combination of the clusters' correlators into one z-score per bit.
+
+    Parameters
+    ----------
+    q : (k, m) float
+    energy : (k, m) float
+    weights : (k,) float, optional
+        Cluster weights chosen without the key (default: inverse mean energy,
+        so clusters measured with less noise count more).
+
+    Returns
+    -------
+    z : (m,) float
+        Approximately N(0, 1) per bit when no watermark of this key is present.
+    """
+    q = np.atleast_2d(q)
+    energy = np.atleast_2d(energy)
+    if weights is None:
+        mean_energy = energy.mean(axis=1)
+        weights = np.where(mean_energy > 0, 1.0 / np.maximum(mean_energy, 1e-300), 0.0)
+    num = 3.0 * (weights[:, None] * q).sum(axis=0)
+    den = np.sqrt((weights[:, None] ** 2 * energy).sum(axis=0))
+    return np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
+
+
+def p_value_present(z):
+    """p-value of "a watermark of this key is present", payload unknown.
+
+    Under the null the z_j are independent N(0, 1) (a Rademacher sum, whose
+    tails are no heavier than Gaussian), so sum(z_j^2) ~ chi-square(m).
+    """
+    z = np.asarray(z, dtype=np.float64)
+    return float(stats.chi2.sf(float(z @ z), df=len(z)))
+
+
+def p_value_payload(z, bits):
+    """p-value of "this key and this payload are present" (one-sided).
+
+    sum(z_j * b'_j) / sqrt(m) ~ N(0, 1) under the null.
+    """
+    signs = 2.0 * np.asarray(bits, dtype=np.float64) - 1.0
+    return float(stats.norm.sf(float(z @ signs) / np.sqrt(len(z))))

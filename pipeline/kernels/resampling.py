@@ -1,0 +1,180 @@
+"""Resampling a suspect onto the original, and estimating the watermark displacement.
+
+Two ways from a registered suspect to the coefficient differences r-hat - r:
+
+``snap_to_original`` is the paper's resampling: each original point p_j takes
+the coordinates of its nearest suspect point if that is closer than
+d_r = 1/2 of p_j's nearest-neighbour distance in the original, else keeps its
+own.  The differences are then E^T (P'' - P).
+
+``fit_spectral_displacement`` goes beyond it: the unknown differences X
+(n_coefficients x 3) of all clusters are fitted by weighted least squares so
+that the original, deformed by E X, passes through the suspect points.  Each
+suspect point pulls on its nearest deformed original point; the pull is split
+into the normal part and the tangential part, weighted by the inverse of
+their measured variances (point-to-plane when the suspect was resampled,
+point-to-point when its points are the original's).  A small ridge keeps
+clusters with few suspect points well posed.  The fit is repeated with the
+correspondences of the deformed original.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.linalg as sl
+from scipy.spatial import cKDTree
+
+__all__ = [
+    "nearest_spacing", "estimate_normals", "snap_to_original", "fit_spectral_displacement",
+]
+
+
+def nearest_spacing(points):
+    """Distance from each point to its nearest other point.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+
+    Returns
+    -------
+    (n,) float
+    """
+    dist, _ = cKDTree(points).query(points, k=2)
+    return dist[:, 1]
+
+
+def estimate_normals(points, k=16):
+    """Unoriented normals by local principal component analysis.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+    k : int
+        Neighbourhood size.
+
+    Returns
+    -------
+    (n, 3) float, unit rows
+    """
+    k = min(k, len(points))
+    _, idx = cKDTree(points).query(points, k=k)
+    nbrs = points[idx]                                  # (n, k, 3)
+    centred = nbrs - nbrs.mean(axis=1, keepdims=True)
+    cov = np.einsum("nki,nkj->nij", centred, centred)   # (n, 3, 3)
+    _, vectors = np.linalg.eigh(cov)
+    return vectors[:, :, 0]                             # smallest-variance direction
+
+
+def snap_to_original(original, suspect):
+    """The paper's resampling of the suspect onto the original.
+
+    Parameters
+    ----------
+    original : (n, 3) float
+    suspect : (m, 3) float, registered
+
+    Returns
+    -------
+    resampled : (n, 3) float
+        P'': each original point replaced by its nearest suspect point within d_r.
+    matched : (n,) bool
+    """
+    threshold = 0.5 * nearest_spacing(original)
+    dist, idx = cKDTree(suspect).query(original)
+    matched = dist < threshold
+    resampled = original.copy()
+    resampled[matched] = suspect[idx[matched]]
+    return resampled, matched
+
+
+def fit_spectral_displacement(original, normals, suspect, clusters, bases, *,
+                              iterations=3, ridge=1e-3, cut=None, tangential_gate=0.25):
+    """Least-squares coefficient differences of every cluster.
+
+    Parameters
+    ----------
+    original : (n, 3) float
+    normals : (n, 3) float, unit
+    suspect : (m, 3) float, registered onto ``original``
+    clusters : list of (n_c,) int
+        Point indices of each cluster.
+    bases : list of (n_c, K) float
+        Spectral basis E of each cluster.
+    iterations : int
+    ridge : float
+        Ridge weight relative to the mean diagonal of the normal equations.
+    cut : float, optional
+        Suspect points farther than this from the deformed original are
+        ignored (default: 4 times the original's median spacing).
+
+    Returns
+    -------
+    deltas : list of (K, 3) float
+        Estimated r-hat - r per cluster.
+    support : list of int
+        Suspect points used per cluster (last iteration).
+    """
+    spacing = nearest_spacing(original)
+    if cut is None:
+        cut = 4.0 * float(np.median(spacing))
+    deltas = [np.zeros((e.shape[1], 3)) for e in bases]
+    support = [0] * len(clusters)
+    for _ in range(iterations):
+        deformed = original.copy()
+        for members, basis, delta in zip(clusters, bases, deltas):
+            deformed[members] += basis @ delta
+        dist, nearest = cKDTree(deformed).query(suspect)
+        near = dist < cut
+        owner = np.full(len(original), -1, dtype=np.int64)
+        for c, members in enumerate(clusters):
+            owner[members] = c
+        for c, (members, basis) in enumerate(zip(clusters, bases)):
+            pick = near & (owner[nearest] == c)
+            support[c] = int(pick.sum())
+            if support[c] == 0:
+                deltas[c] = np.zeros_like(deltas[c])
+                continue
+            reliable = dist[pick] < tangential_gate * spacing[nearest[pick]]
+            deltas[c] = _solve_cluster(
+                original, normals, deformed, suspect[pick], nearest[pick], reliable, members,
+                basis, ridge,
+            )
+    return deltas, support
+
+
+def _solve_cluster(original, normals, deformed, points, targets, reliable, members, basis, ridge):
+    """One weighted least-squares solve for a cluster's coefficient differences."""
+    local = np.full(len(original), -1, dtype=np.int64)
+    local[members] = np.arange(len(members))
+    j = local[targets]
+    n = normals[targets]
+    residual = points - original[targets]               # what the displacement must explain
+    current = points - deformed[targets]                # misfit of the current estimate
+    normal_part = np.einsum("ki,ki->k", current, n)
+    tangential = current - normal_part[:, None] * n
+    var_n = max(float(np.median(normal_part**2)), 1e-30)
+    outer = n[:, :, None] * n[:, None, :]               # (k, 3, 3)
+    weight = outer / var_n
+    if reliable.any():
+        # tangential misfit only where the match is unambiguous: a nearest
+        # neighbour chosen among several candidates biases it towards zero
+        var_t = max(float(np.median((tangential[reliable] ** 2).sum(axis=1)) / 2.0), var_n)
+        weight = weight + reliable[:, None, None] * (np.eye(3) - outer) / var_t
+    size = len(members)
+    m = np.zeros((size, 3, 3))
+    np.add.at(m, j, weight)
+    rhs_points = np.zeros((size, 3))
+    np.add.at(rhs_points, j, np.einsum("kab,kb->ka", weight, residual))
+    k = basis.shape[1]
+    normal_matrix = np.empty((3 * k, 3 * k))
+    for a in range(3):
+        for b in range(a, 3):
+            block = basis.T @ (m[:, a, b][:, None] * basis)
+            normal_matrix[a * k:(a + 1) * k, b * k:(b + 1) * k] = block
+            normal_matrix[b * k:(b + 1) * k, a * k:(a + 1) * k] = block
+    rhs = (basis.T @ rhs_points).T.reshape(-1)          # [axis x | axis y | axis z]
+    lam = ridge * float(np.trace(normal_matrix)) / (3 * k)
+    normal_matrix[np.diag_indices_from(normal_matrix)] += lam
+    solution = sl.solve(normal_matrix, rhs, assume_a="pos")
+    return solution.reshape(3, k).T

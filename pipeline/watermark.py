@@ -1,0 +1,370 @@
+"""Embedding and detection for one point set, composed from the kernels.
+
+Arrays in, arrays out: no files, no configs, no secrets (only derived key
+material).  The catalogue graph calls the same per-cluster functions
+(:func:`plan_clusters`, :func:`embed_cluster`), so a Dask run and a serial run
+produce the same bytes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .kernels import clustering, graph, keys, modulation, registration, resampling, spectral
+
+__all__ = [
+    "WatermarkParams", "DetectParams", "Frame", "ClusterSpec", "frame_of", "plan_clusters",
+    "cluster_basis", "embed_cluster", "embed", "detect", "distortion", "WatermarkError",
+]
+
+
+class WatermarkError(ValueError):
+    """The input cannot carry or be checked for the watermark (bad geometry, capacity)."""
+
+
+@dataclass(frozen=True)
+class WatermarkParams:
+    """Parameters shared by embedding and detection (names follow the paper)."""
+
+    n_bits: int = 32                  # m, payload bits (before the CRC)
+    chip_rate: int = 10               # c
+    beta: float = 0.002               # amplitude ratio; alpha = beta * phi
+    valence: float = 12.0             # N_n, average valence of the radius mesh
+    n_clusters: int = 5
+    cluster_size: int = 4000
+    seeds: tuple | None = None        # seed indices, or seed coordinates [[x, y, z], ...]
+    on_touch: str = "skip"            # "stop" (the paper's literal rule) or "skip"
+    cover: bool = False               # grow clusters over the whole model
+    chip_layout: str = "consecutive"  # "consecutive" (paper) or "interleaved"
+    first_coefficient: int = 0        # index of the first modulated coefficient
+    crc_bits: int = 0                 # 0 (paper), 8 or 16
+
+    @property
+    def total_bits(self):
+        return self.n_bits + self.crc_bits
+
+    @property
+    def n_coefficients(self):
+        return self.first_coefficient + self.total_bits * self.chip_rate
+
+
+@dataclass(frozen=True)
+class DetectParams:
+    """Detection choices: the paper's steps or the robust ones."""
+
+    registration: str = "robust"      # "none", "paper" (covariance) or "robust" (ICP with scale)
+    correspondence: str = "spectral"  # "paper" (nearest point under d_r) or "spectral" (least squares)
+    p_threshold: float = 1e-6         # "watermarked" when p_value < p_threshold
+    iterations: int = 2               # least-squares refits
+    ridge: float = 1.0                # relative ridge of the least-squares fit
+    tangential_gate: float = 0.25     # use tangential misfit where the match is within this x spacing
+
+
+@dataclass(frozen=True)
+class Frame:
+    """Working frame of an original: coordinates are centred on its bbox centre."""
+
+    centre: np.ndarray
+    phi: float    # largest bbox side
+    diag: float   # bbox diagonal
+
+
+@dataclass(frozen=True)
+class ClusterSpec:
+    index: int
+    seed_index: int
+    size_limit: int
+    members: np.ndarray = field(repr=False)
+
+    def record(self, radius):
+        return {"index": self.index, "seed_index": self.seed_index,
+                "size_limit": self.size_limit, "size": int(len(self.members)),
+                "radius": float(radius)}
+
+
+def frame_of(points):
+    """Centre, phi and diagonal of a point set, after checking it is a surface.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+
+    Returns
+    -------
+    Frame
+    """
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    sides = hi - lo
+    phi = float(sides.max())
+    if phi == 0.0:
+        raise WatermarkError("all points are identical (the bounding box has zero size)")
+    centred = points - points.mean(axis=0)
+    sv = np.linalg.svd(centred[:: max(1, len(points) // 20000)], compute_uv=False)
+    if sv[1] <= 1e-9 * sv[0]:
+        raise WatermarkError("the points are collinear; a surface is needed to carry a watermark")
+    return Frame(centre=(lo + hi) / 2.0, phi=phi, diag=float(np.linalg.norm(sides)))
+
+
+def plan_clusters(points, params):
+    """Seeds and members of the clusters (paper, "Clustering").
+
+    Parameters
+    ----------
+    points : (n, 3) float, centred
+    params : WatermarkParams
+
+    Returns
+    -------
+    list of ClusterSpec
+    """
+    n = len(points)
+    if n < params.n_coefficients + spectral.GUARD:
+        raise WatermarkError(
+            f"the model has {n} points, fewer than the {params.n_coefficients} spectral "
+            f"coefficients the payload needs ({params.total_bits} bits x chip rate {params.chip_rate})"
+        )
+    seeds = _seed_indices(points, params)
+    sizes = np.full(len(seeds), params.cluster_size, dtype=np.int64)
+    labels = clustering.grow_clusters(points, seeds, sizes, on_touch=params.on_touch,
+                                      cover=params.cover)
+    specs = []
+    for c, s in enumerate(seeds):
+        members = np.flatnonzero(labels == c)
+        if len(members) < params.n_coefficients + spectral.GUARD:
+            continue  # too small to carry the payload; recorded by its absence
+        specs.append(ClusterSpec(len(specs), int(s), int(params.cluster_size), members))
+    if not specs:
+        raise WatermarkError(
+            f"no cluster reached the {params.n_coefficients + spectral.GUARD} points the payload needs "
+            f"({params.total_bits} bits x chip rate {params.chip_rate}); the payload is longer than "
+            f"the capacity: lower n_bits or chip_rate, or raise cluster_size"
+        )
+    return specs
+
+
+def _seed_indices(points, params):
+    if params.seeds is None:
+        n_seeds = params.n_clusters
+        if params.cover:
+            n_seeds = max(1, int(np.ceil(len(points) / params.cluster_size)))
+        return clustering.farthest_point_seeds(points, min(n_seeds, len(points)))
+    seeds = np.asarray(params.seeds)
+    if seeds.ndim == 2:
+        return clustering.nearest_indices(points, seeds)
+    if seeds.min() < 0 or seeds.max() >= len(points):
+        raise WatermarkError(f"seed indices must lie in [0, {len(points)}), got {seeds.tolist()}")
+    return seeds.astype(np.int64)
+
+
+def cluster_basis(cluster_points, params):
+    """Radius mesh and spectral basis of one cluster.
+
+    Parameters
+    ----------
+    cluster_points : (n_c, 3) float
+    params : WatermarkParams
+
+    Returns
+    -------
+    radius : float
+    basis : (n_c, n_coefficients) float
+    """
+    radius = graph.valence_radius(cluster_points, params.valence)
+    adjacency = graph.radius_graph(cluster_points, radius)
+    adjacency, _ = graph.connect_components(cluster_points, adjacency)
+    _, basis = spectral.spectral_basis(graph.laplacian(adjacency), params.n_coefficients)
+    return radius, basis
+
+
+def chip_positions(material, cluster_index, params):
+    """Coefficient index of every chip of one cluster, (m * c,) int."""
+    count = params.total_bits * params.chip_rate
+    if params.chip_layout == "interleaved":
+        order = keys.key_permutation(material, f"layout/cluster={cluster_index}", count)
+    else:
+        order = np.arange(count)
+    return params.first_coefficient + order
+
+
+def sequences(material, cluster_index, params):
+    """The key's +-1 sequences of one cluster, (3, m * c) float."""
+    count = params.total_bits * params.chip_rate
+    return np.stack([
+        keys.pseudo_random_signs(material, f"cluster={cluster_index}/axis={a}", count)
+        for a in range(3)
+    ]).astype(np.float64)
+
+
+def payload_bits(message_bits, params):
+    """Message bits followed by their CRC, (total_bits,) uint8."""
+    return np.concatenate([message_bits, modulation.crc_bits(message_bits, params.crc_bits)])
+
+
+def embed_cluster(cluster_points, cluster_index, material, bits, amplitude, params):
+    """Displacement of one cluster's points (equations 2-4 and the synthesis).
+
+    Parameters
+    ----------
+    cluster_points : (n_c, 3) float
+    cluster_index : int
+    material : bytes
+        Key material of the key id.
+    bits : (total_bits,) {0, 1}
+    amplitude : float
+        alpha.
+    params : WatermarkParams
+
+    Returns
+    -------
+    displacement : (n_c, 3) float
+    radius : float
+    """
+    radius, basis = cluster_basis(cluster_points, params)
+    delta = modulation.spread(bits, params.chip_rate, sequences(material, cluster_index, params),
+                              amplitude, chip_positions(material, cluster_index, params))
+    return basis[:, : len(delta)] @ delta, radius
+
+
+def embed(points, material, message_bits, params):
+    """Watermark a point set.
+
+    Parameters
+    ----------
+    points : (n, 3) float, any frame
+    material : bytes
+    message_bits : (n_bits,) {0, 1}
+    params : WatermarkParams
+
+    Returns
+    -------
+    watermarked : (n, 3) float, same order and frame as ``points``
+    clusters : list of dict (index, seed_index, size_limit, size, radius)
+    """
+    frame = frame_of(points)
+    centred = points - frame.centre
+    bits = payload_bits(message_bits, params)
+    amplitude = params.beta * frame.phi
+    moved = centred.copy()
+    records = []
+    for spec in plan_clusters(centred, params):
+        disp, radius = embed_cluster(centred[spec.members], spec.index, material, bits,
+                                     amplitude, params)
+        moved[spec.members] += disp
+        records.append(spec.record(radius))
+    return moved + frame.centre, records
+
+
+def distortion(original, watermarked):
+    """RMSE (same order) and symmetric Hausdorff distance, relative to the bbox diagonal.
+
+    Parameters
+    ----------
+    original, watermarked : (n, 3) float
+
+    Returns
+    -------
+    dict with rmse_rel_diag, hausdorff_rel_diag
+    """
+    diag = float(np.linalg.norm(original.max(axis=0) - original.min(axis=0)))
+    rmse = float(np.sqrt(((watermarked - original) ** 2).sum(axis=1).mean()))
+    d1, _ = cKDTree(original).query(watermarked)
+    d2, _ = cKDTree(watermarked).query(original)
+    return {"rmse_rel_diag": rmse / diag, "hausdorff_rel_diag": float(max(d1.max(), d2.max())) / diag}
+
+
+def detect(suspect, original, material, params, detect_params):
+    """Informed detection of a watermark in a suspect point set.
+
+    Parameters
+    ----------
+    suspect : (m, 3) float, any order, count and similarity frame
+    original : (n, 3) float, the reference
+    material : bytes
+    params : WatermarkParams
+    detect_params : DetectParams
+
+    Returns
+    -------
+    dict
+        bits, message (HEX), bit_scores, p_value, detected, crc_ok,
+        registration and per-cluster support.
+    """
+    frame = frame_of(original)
+    reference = original - frame.centre
+    specs = plan_clusters(reference, params)
+    bases = [cluster_basis(reference[s.members], params)[1] for s in specs]
+    return detect_with_bases(suspect - frame.centre, reference, specs, bases, material,
+                             params, detect_params)
+
+
+def detect_with_bases(suspect, reference, specs, bases, material, params, detect_params):
+    """Detection when the original's clusters and bases are already known.
+
+    ``suspect`` and ``reference`` are in the original's working frame.
+    """
+    spacing = float(np.median(resampling.nearest_spacing(reference)))
+    transform = _register(suspect, reference, spacing, detect_params.registration)
+    aligned = registration.apply(transform, suspect)
+    deltas, support = _coefficient_differences(aligned, reference, specs, bases, detect_params)
+    qs, energies = [], []
+    for spec, delta in zip(specs, deltas):
+        q, energy = modulation.despread(delta, params.chip_rate, sequences(material, spec.index, params),
+                                        chip_positions(material, spec.index, params))
+        qs.append(q)
+        energies.append(energy)
+    z = modulation.combine_scores(np.array(qs), np.array(energies))
+    bits = (z > 0).astype(np.uint8)
+    message = bits[: params.n_bits]
+    crc_ok = None
+    if params.crc_bits:
+        crc_ok = bool(np.array_equal(modulation.crc_bits(message, params.crc_bits), bits[params.n_bits:]))
+    p_value = modulation.p_value_present(z)
+    return {
+        "message": modulation.bits_to_hex(message),
+        "bits": message.tolist(),
+        "bit_scores": z[: params.n_bits].tolist(),
+        "crc_ok": crc_ok,
+        "p_value": p_value,
+        "detected": bool(p_value < detect_params.p_threshold),
+        "registration": {
+            "method": detect_params.registration,
+            "scale": float(transform.scale),
+            "fitness": float(transform.fitness),
+            "residual_rel_diag": float(transform.residual) / _diag(reference),
+        },
+        "clusters": [{"index": s.index, "support": int(n)} for s, n in zip(specs, support)],
+    }
+
+
+def _diag(points):
+    return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+
+
+def _register(suspect, reference, spacing, method):
+    if method == "none":
+        return registration.Similarity(np.eye(3), 1.0, np.zeros(3))
+    if method == "paper":
+        return registration.register_covariance(suspect, reference, spacing=spacing)
+    return registration.register_robust(suspect, reference, spacing=spacing)
+
+
+def _coefficient_differences(aligned, reference, specs, bases, detect_params):
+    if detect_params.correspondence == "paper":
+        resampled, _ = resampling.snap_to_original(reference, aligned)
+        deltas = [e.T @ (resampled[s.members] - reference[s.members]) for s, e in zip(specs, bases)]
+        support = [int(np.any(resampled[s.members] != reference[s.members], axis=1).sum()) for s in specs]
+        return deltas, support
+    normals = resampling.estimate_normals(reference)
+    return resampling.fit_spectral_displacement(
+        reference, normals, aligned, [s.members for s in specs], bases,
+        iterations=detect_params.iterations, ridge=detect_params.ridge,
+        tangential_gate=detect_params.tangential_gate,
+    )
+
+
+def params_record(params):
+    """Plain-dict view of parameters for manifests and JSON."""
+    return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(params).items()}
