@@ -124,7 +124,8 @@ def plan_clusters(points, params):
     if n < params.n_coefficients + spectral.GUARD:
         raise WatermarkError(
             f"the model has {n} points, fewer than the {params.n_coefficients} spectral "
-            f"coefficients the payload needs ({params.total_bits} bits x chip rate {params.chip_rate})"
+            f"coefficients the payload needs ({params.total_bits} bits x chip rate {params.chip_rate}): "
+            f"the payload is longer than the capacity of this model"
         )
     seeds = _seed_indices(points, params)
     sizes = np.full(len(seeds), params.cluster_size, dtype=np.int64)

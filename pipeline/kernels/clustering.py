@@ -1,15 +1,17 @@
 """Clusters of a point set grown from seed points (paper, section 2.2, "Clustering").
 
-A cluster starts at a seed point and grows by adding, one point at a time, the
-point closest to the cluster.  Clusters grow in turn (round robin).  A cluster
-stops when it reaches its size limit or, with ``on_touch="stop"`` (the paper),
-when the point closest to it already belongs to a cluster.  With
+A cluster starts at a seed point (its centre) and grows by adding, one point
+at a time, the point closest to it.  Clusters grow in turn (round robin).  A
+cluster stops when it reaches its size limit or, with ``on_touch="stop"`` (the
+paper), when the point closest to it already belongs to a cluster.  With
 ``on_touch="skip"`` the claimed point is passed over and growth goes on around
 it, so clusters stay disjoint but reach their size.
 
-"Closest to the cluster" is the smallest Euclidean distance from any member,
-searched over a k-nearest-neighbour graph (a Prim-style frontier), which is
-exact whenever the closest point is among some member's k neighbours.
+"Closest" is measured along the surface: the shortest path from the seed
+over the k-nearest-neighbour graph with Euclidean edge lengths (Dijkstra).
+This grows compact discs on irregular samplings, where the smallest distance
+to any member (Prim) would creep along chains of close points, and it does
+not jump across thin gaps between separate surfaces.
 """
 
 from __future__ import annotations
@@ -108,7 +110,7 @@ def grow_clusters(points, seeds, sizes, *, on_touch="stop", cover=False):
     for c, s in enumerate(seeds):
         labels[s] = c
         counts[c] = 1
-        _push_neighbours(heaps[c], s, dist, nbr, labels)
+        _push_neighbours(heaps[c], 0.0, s, dist, nbr, labels)
         if counts[c] < sizes[c]:
             active.append(c)
     while active:
@@ -124,16 +126,16 @@ def grow_clusters(points, seeds, sizes, *, on_touch="stop", cover=False):
     return labels
 
 
-def _push_neighbours(heap, i, dist, nbr, labels):
+def _push_neighbours(heap, path, i, dist, nbr, labels):
     for d, j in zip(dist[i, 1:], nbr[i, 1:]):
         if labels[j] < 0:
-            heapq.heappush(heap, (float(d), int(j)))
+            heapq.heappush(heap, (path + float(d), int(j)))
 
 
 def _grow_one(c, heap, labels, dist, nbr, on_touch):
     """Add the closest free point to cluster ``c``; False when it stops."""
     while heap:
-        _, j = heapq.heappop(heap)
+        path, j = heapq.heappop(heap)
         owner = labels[j]
         if owner == c:
             continue  # reached twice through the frontier
@@ -142,7 +144,7 @@ def _grow_one(c, heap, labels, dist, nbr, on_touch):
                 return False
             continue
         labels[j] = c
-        _push_neighbours(heap, j, dist, nbr, labels)
+        _push_neighbours(heap, path, j, dist, nbr, labels)
         return True
     return False
 

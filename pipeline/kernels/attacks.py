@@ -1,0 +1,149 @@
+"""Attacks on point sets, as defined in ROBUSTNESS.md (seeded, pure functions).
+
+Every attack takes ``points`` (n, 3) and a ``rng`` and returns new points;
+phi is the largest bbox side of the input.  Chains are lists of
+``(name, strength)`` applied in order by :func:`apply_chain`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+__all__ = [
+    "rotation_matrix", "similarity", "paper_similarity", "random_similarity", "noise_uniform",
+    "noise_gaussian", "removal", "crop", "quantize", "smooth", "shuffle", "apply_chain", "ATTACKS",
+]
+
+
+def _phi(points):
+    return float((points.max(axis=0) - points.min(axis=0)).max())
+
+
+def rotation_matrix(axis, degrees):
+    """(3, 3) rotation about a coordinate axis ('x', 'y' or 'z')."""
+    a = np.radians(degrees)
+    c, s = np.cos(a), np.sin(a)
+    i, j = {"x": (1, 2), "y": (2, 0), "z": (0, 1)}[axis]
+    r = np.eye(3)
+    r[i, i], r[i, j], r[j, i], r[j, j] = c, -s, s, c
+    return r
+
+
+def similarity(points, rotation, scale=1.0, translation=(0.0, 0.0, 0.0)):
+    """x -> scale * R x + t.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+    rotation : (3, 3) float
+    scale : float
+    translation : (3,) float
+    """
+    return scale * points @ np.asarray(rotation).T + np.asarray(translation, dtype=np.float64)
+
+
+def paper_similarity(points, rng=None):
+    """The paper's transform: 10 deg about x, then 30 deg about y, scale 0.6."""
+    rot = rotation_matrix("y", 30.0) @ rotation_matrix("x", 10.0)
+    return similarity(points, rot, 0.6)
+
+
+def random_similarity(points, rng=None):
+    """A uniformly random rotation, scale in [0.1, 10] (log-uniform), translation up to 2 phi."""
+    rng = np.random.default_rng(rng)
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q = q * np.sign(np.diag(r))
+    if np.linalg.det(q) < 0:
+        q[:, 0] *= -1.0
+    scale = float(np.exp(rng.uniform(np.log(0.1), np.log(10.0))))
+    return similarity(points, q, scale, rng.uniform(-2.0, 2.0, 3) * _phi(points))
+
+
+def noise_uniform(points, strength, rng=None):
+    """Uniform noise per coordinate in [-a, a], a = strength * phi (strength 0.005 = 0.5 %)."""
+    rng = np.random.default_rng(rng)
+    return points + rng.uniform(-1.0, 1.0, points.shape) * strength * _phi(points)
+
+
+def noise_gaussian(points, strength, rng=None):
+    """Gaussian noise per coordinate, standard deviation strength * phi."""
+    rng = np.random.default_rng(rng)
+    return points + rng.normal(0.0, strength * _phi(points), points.shape)
+
+
+def removal(points, fraction, rng=None):
+    """Keep a random ``fraction`` of the points (order kept)."""
+    rng = np.random.default_rng(rng)
+    keep = max(1, int(round(fraction * len(points))))
+    return points[np.sort(rng.choice(len(points), keep, replace=False))]
+
+
+def crop(points, fraction, rng=None):
+    """Keep the ``fraction`` of points on one side of a random plane through the model."""
+    rng = np.random.default_rng(rng)
+    normal = rng.normal(size=3)
+    normal /= np.linalg.norm(normal)
+    height = points @ normal
+    cut = np.quantile(height, 1.0 - fraction)
+    return points[height >= cut]
+
+
+def quantize(points, bits, rng=None):
+    """Round coordinates to a grid of phi / 2**bits (anchored at the bbox minimum)."""
+    step = _phi(points) / float(2 ** int(bits))
+    lo = points.min(axis=0)
+    return lo + np.round((points - lo) / step) * step
+
+
+def smooth(points, iterations, rng=None, *, k=8, lam=0.5):
+    """Laplacian smoothing on the k-nearest-neighbour graph, lambda 0.5."""
+    _, idx = cKDTree(points).query(points, k=k + 1)
+    out = points.copy()
+    for _ in range(int(iterations)):
+        out = out + lam * (out[idx[:, 1:]].mean(axis=1) - out)
+    return out
+
+
+def shuffle(points, rng=None):
+    """Permute the point order."""
+    rng = np.random.default_rng(rng)
+    return points[rng.permutation(len(points))]
+
+
+# name -> (function, takes a strength)
+ATTACKS = {
+    "similarity": (paper_similarity, False),
+    "random_similarity": (random_similarity, False),
+    "noise": (noise_uniform, True),
+    "gaussian_noise": (noise_gaussian, True),
+    "removal": (removal, True),
+    "crop": (crop, True),
+    "quantize": (quantize, True),
+    "smooth": (smooth, True),
+    "shuffle": (shuffle, False),
+}
+
+
+def apply_chain(points, chain, rng=None):
+    """Apply ``[(name, strength or None), ...]`` in order with one generator.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+    chain : list of (str, float or None)
+    rng : int or numpy.random.Generator
+
+    Returns
+    -------
+    (m, 3) float
+    """
+    rng = np.random.default_rng(rng)
+    for name, strength in chain:
+        if name not in ATTACKS:
+            raise ValueError(f"unknown attack {name!r}; known: {sorted(ATTACKS)}")
+        func, needs = ATTACKS[name]
+        if needs and strength is None:
+            raise ValueError(f"attack {name!r} needs a strength, e.g. {name}:0.5")
+        points = func(points, strength, rng) if needs else func(points, rng)
+    return points

@@ -1,0 +1,36 @@
+import numpy as np
+
+from pipeline.kernels import attacks
+from pipeline.kernels.registration import apply, register_covariance, register_robust, umeyama
+from tests.conftest import sphere_patch
+
+
+def test_umeyama_recovers_a_similarity():
+    pts = sphere_patch(500)
+    rot = attacks.rotation_matrix("z", 40) @ attacks.rotation_matrix("x", -25)
+    moved = attacks.similarity(pts, rot, 2.5, [1.0, -2.0, 3.0])
+    t = umeyama(moved, pts)
+    assert np.allclose(apply(t, moved), pts, atol=1e-9)
+    assert abs(t.scale - 0.4) < 1e-9
+
+
+def test_covariance_registration_undoes_the_papers_transform():
+    pts = sphere_patch(3000)
+    moved = attacks.paper_similarity(pts)
+    t = register_covariance(moved, pts, spacing=0.03)
+    assert np.abs(apply(t, moved) - pts).max() < 1e-6
+
+
+def test_robust_registration_survives_similarity_with_removal_and_noise():
+    pts = sphere_patch(6000)
+    rng = np.random.default_rng(5)
+    keep = np.sort(rng.choice(len(pts), 720, replace=False))
+    rot = attacks.rotation_matrix("y", 140) @ attacks.rotation_matrix("z", 70)
+    noisy = attacks.noise_uniform(pts[keep], 0.002, rng)
+    moved = attacks.similarity(noisy, rot, 3.7, [5.0, 1.0, -2.0])
+    order = rng.permutation(len(keep))
+    t = register_robust(moved[order], pts, spacing=0.02)
+    err = np.linalg.norm(apply(t, moved[order]) - noisy[order], axis=1)
+    assert abs(t.scale - 1 / 3.7) < 0.01 * (1 / 3.7)
+    assert np.median(err) < 0.005
+    assert t.fitness > 0.95

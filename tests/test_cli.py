@@ -1,0 +1,116 @@
+"""The command line: exit status 2 and one clear line for every kind of bad input."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from pipeline.cli import main
+from tests.conftest import ROOT, sphere_patch
+
+
+def _ply(path, pts):
+    head = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(pts)}\n"
+            "property double x\nproperty double y\nproperty double z\nend_header\n")
+    path.write_bytes(head.encode() + np.asarray(pts, dtype="<f8").tobytes())
+    return path
+
+
+def _embed(src, out, *extra):
+    return main(["embed", str(src), str(out), "--key-id", "k", "--message", "c0ffee", *extra])
+
+
+@pytest.fixture()
+def small_model(tmp_path):
+    return _ply(tmp_path / "model.ply", sphere_patch(3000))
+
+
+SMALL = ["--set", "n_bits=24", "--set", "cluster_size=1200", "--set", "n_clusters=2"]
+
+
+def test_embed_and_detect_a_small_model(tmp_path, small_model, secret_env, capsys):
+    assert _embed(small_model, tmp_path / "out.ply", *SMALL, "--json") == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["n_points"] == 3000 and res["n_bits"] == 24
+    assert {"seed_index", "size", "radius"} <= set(res["clusters"][0])
+    assert 0 < res["distortion"]["rmse_rel_diag"] < 0.01
+    assert main(["detect", str(tmp_path / "out.ply"), "--original", str(small_model), "--key-id", "k",
+                 "--json", *SMALL]) == 0
+    det = json.loads(capsys.readouterr().out)
+    assert det["detected"] and det["message"] == "c0ffee" and det["p_value"] < 1e-6
+    assert len(det["bits"]) == len(det["bit_scores"]) == 24
+
+
+def _bad(tmp_path, capsys, argv, *needles):
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    for needle in needles:
+        assert needle in err, err
+    assert not (tmp_path / "out.ply").exists()
+    assert not [p for p in tmp_path.iterdir() if ".tmp" in p.name]
+
+
+def test_missing_file(tmp_path, secret_env, capsys):
+    _bad(tmp_path, capsys, ["embed", str(tmp_path / "gone.ply"), str(tmp_path / "out.ply"), "--key-id", "k",
+                            "--message", "1"], "gone.ply", "no such file")
+
+
+def test_corrupt_and_truncated_ply(tmp_path, secret_env, capsys):
+    (tmp_path / "junk.ply").write_bytes(b"\x00\x01garbage")
+    _bad(tmp_path, capsys, ["embed", str(tmp_path / "junk.ply"), str(tmp_path / "out.ply"), "--key-id", "k",
+                            "--message", "1"], "junk.ply", "not a PLY file")
+    full = _ply(tmp_path / "full.ply", sphere_patch(3000)).read_bytes()
+    (tmp_path / "cut.ply").write_bytes(full[: len(full) - 5000])
+    _bad(tmp_path, capsys, ["embed", str(tmp_path / "cut.ply"), str(tmp_path / "out.ply"), "--key-id", "k",
+                            "--message", "1"], "cut.ply", "truncated")
+
+
+def test_nan_coordinates(tmp_path, secret_env, capsys):
+    pts = sphere_patch(3000)
+    pts[10] = np.nan
+    _ply(tmp_path / "nan.ply", pts)
+    _bad(tmp_path, capsys, ["embed", str(tmp_path / "nan.ply"), str(tmp_path / "out.ply"), "--key-id", "k",
+                            "--message", "1"], "nan.ply", "NaN or infinite")
+
+
+@pytest.mark.parametrize("name,pts,needle", [
+    ("few.ply", sphere_patch(200), "fewer than the 320 spectral coefficients"),
+    ("same.ply", np.ones((3000, 3)), "all points are identical"),
+    ("line.ply", np.outer(np.linspace(0, 1, 3000), [1.0, 2.0, 3.0]), "collinear"),
+])
+def test_geometry_that_cannot_carry_a_payload(tmp_path, secret_env, capsys, name, pts, needle):
+    _ply(tmp_path / name, pts)
+    _bad(tmp_path, capsys, ["embed", str(tmp_path / name), str(tmp_path / "out.ply"), "--key-id", "k",
+                            "--message", "1"], name, needle)
+
+
+def test_payload_longer_than_capacity(tmp_path, small_model, secret_env, capsys):
+    _bad(tmp_path, capsys, ["embed", str(small_model), str(tmp_path / "out.ply"), "--key-id", "k",
+                            "--message", "123456789", "--set", "n_bits=32"], "--message", "capacity")
+    _bad(tmp_path, capsys, ["embed", str(small_model), str(tmp_path / "out.ply"), "--key-id", "k",
+                            "--message", "1", "--set", "chip_rate=200"], "model.ply", "capacity")
+
+
+def test_missing_secret(tmp_path, small_model, monkeypatch, capsys):
+    monkeypatch.delenv("POINTMARK_SECRET", raising=False)
+    _bad(tmp_path, capsys, ["embed", str(small_model), str(tmp_path / "out.ply"), "--key-id", "k",
+                            "--message", "1"], "no secret", "POINTMARK_SECRET")
+
+
+def test_secret_file_is_used_and_never_printed(tmp_path, small_model, monkeypatch, capsys):
+    monkeypatch.delenv("POINTMARK_SECRET", raising=False)
+    (tmp_path / "key").write_text("s3cr3t-value\n")
+    assert _embed(small_model, tmp_path / "o.ply", *SMALL, "--secret-file", str(tmp_path / "key"), "--json") == 0
+    out = capsys.readouterr()
+    assert "s3cr3t-value" not in out.out + out.err
+    assert len(json.loads(out.out)["key_fingerprint"]) == 16
+
+
+def test_console_script_is_installed():
+    exe = ROOT / ".venv" / "bin" / "pointmark"
+    if not exe.exists():
+        pytest.skip("not running from the project's .venv")
+    out = subprocess.run([str(exe), "--version"], capture_output=True, text=True, check=True)
+    assert out.stdout.startswith("pointmark ")
