@@ -60,6 +60,29 @@ def build_parser():
     _common(p)
     p.set_defaults(func=cmd_detect)
 
+    p = sub.add_parser("run", help="watermark a catalogue (the main job); exit 1 if any asset failed")
+    p.add_argument("config_file")
+    p.add_argument("--set", dest="sets", action="append", default=[], metavar="NAME=VALUE")
+    p.add_argument("--secret-file", help="file holding the master secret (else key.secret_file or $POINTMARK_SECRET)")
+    p.add_argument("--force", action="store_true", help="redo assets that are already done")
+    p.add_argument("--dry-run", action="store_true", help="print the plan, write nothing")
+    p.add_argument("--serial", action="store_true", help="plain loop in this process, no Dask")
+    p.add_argument("--shard", help="I/N: only every N-th asset from the I-th (0-based)")
+    p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("catalog", help="catalogue files")
+    csub = p.add_subparsers(dest="catalog_command", required=True)
+    b = csub.add_parser("build", help="record sha256, size, format, points, bbox and shape descriptor")
+    b.add_argument("source", help="folder or glob of point-cloud files")
+    b.add_argument("--out", required=True, help="catalogue Parquet file to write")
+    b.add_argument("--recipients", default="", help="comma-separated recipients for every asset")
+    b.set_defaults(func=cmd_catalog_build)
+
+    p = sub.add_parser("demo", help="generate the demo catalogue, watermark it, detect, summarise")
+    p.add_argument("--dir", default="catalog/demo", help="where the demo catalogue is generated")
+    p.add_argument("--config", default="configs/demo.yaml")
+    p.set_defaults(func=cmd_demo)
+
     p = sub.add_parser("schema", help="print the config JSON Schema")
     p.set_defaults(func=cmd_schema)
 
@@ -161,6 +184,59 @@ def cmd_validate(args):
     config_mod.load_config(args.config_file)
     print(f"{args.config_file}: valid")
     return 0
+
+
+def _shard(text):
+    if text is None:
+        return None
+    try:
+        i, n = (int(v) for v in text.split("/"))
+    except ValueError:
+        raise config_mod.ConfigError(f"--shard {text!r}: expected I/N, e.g. 0/4") from None
+    if not 0 <= i < n:
+        raise config_mod.ConfigError(f"--shard {text!r}: need 0 <= I < N")
+    return i, n
+
+
+def cmd_run(args):
+    from .orchestrate.run import plan_job, run_job
+
+    cfg = config_mod.load_config(args.config_file, args.sets)
+    secret = _secret(args, cfg)
+    job = plan_job(cfg, secret, force=args.force, shard=_shard(args.shard))
+    print(f"run {job.run_id}: {len(job.assets)} assets, {len(job.todo)} to do, "
+          f"{len(job.assets) - len(job.todo)} already done; key {job.key_id} ({job.key_fingerprint})")
+    if args.dry_run:
+        params = job.params
+        for item in job.assets:
+            state = "done, skip" if item.skip else f"{params.n_clusters} clusters, {2 + params.n_clusters} tasks"
+            recips = ", ".join(r for r, _, _ in item.outputs)
+            print(f"  {item.key}: {item.path} -> {len(item.outputs)} recipients ({recips}); {state}")
+        return 0
+    counts = run_job(job, cfg, serial=args.serial)
+    print(f"done: {counts['ok']} ok, {counts['failed']} failed, {counts['skipped']} skipped; "
+          f"manifests in {job.manifests}")
+    return 1 if counts["failed"] else 0
+
+
+def cmd_catalog_build(args):
+    from .io.catalog import catalogue_record, discover_assets, write_catalogue
+
+    recipients = tuple(r for r in args.recipients.split(",") if r)
+    assets = discover_assets(args.source, default_recipients=recipients)
+    rows = [catalogue_record(a) for a in assets]
+    write_catalogue(rows, args.out)
+    failed = [r for r in rows if r["status"] != "ok"]
+    print(f"wrote {args.out}: {len(rows)} assets, {len(failed)} unreadable")
+    for r in failed:
+        print(f"  failed: {r['error']}", file=sys.stderr)
+    return 1 if failed else 0
+
+
+def cmd_demo(args):
+    from .demo import run_demo
+
+    return run_demo(args.dir, args.config)
 
 
 def main(argv=None):

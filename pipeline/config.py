@@ -91,13 +91,40 @@ KEY = _section("Key identity; the secret itself comes from POINTMARK_SECRET or s
     "secret_file": _p(("string", "null"), None, "Path of a file holding the master secret."),
 })
 
+CATALOG = _section("The assets to watermark.", {
+    "source": _p(("string", "null"), None,
+                 "A folder, a glob pattern, or a catalogue file (.parquet or .csv)."),
+})
+
+OUTPUT = _section("Where results go; relative paths are relative to the working directory.", {
+    "dir": _p("string", "out/marked", "Watermarked copies: DIR/RECIPIENT/ASSET_KEY.EXT."),
+    "manifests": _p("string", "out/manifests", "Embedding manifests: one Parquet file per asset."),
+})
+
+DASK = _section("The Dask cluster that runs the graph.", {
+    "address": _p(("string", "null"), None,
+                  "Scheduler address (tcp://HOST:PORT) of an existing cluster; null starts a LocalCluster."),
+    "n_workers": _p(("integer", "null"), None, "LocalCluster worker processes (null: CPU count).",
+                    minimum=1),
+    "memory_limit": _p("string", "auto", "Memory limit per LocalCluster worker."),
+    "progress": _p(["auto", "bar", "lines", "none"], "auto",
+                   "auto: a live bar on a terminal, periodic lines otherwise."),
+})
+
+RECIPIENTS = {
+    "description": "Recipient ids; each gets its own payload and output file per asset.",
+    "type": "array", "items": {"type": "string", "minLength": 1}, "uniqueItems": True,
+    "default": ["default"],
+}
+
 SCHEMA = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",
     "$id": "https://pointmark.invalid/config.schema.json",
     "title": "pointmark configuration",
     "type": "object",
     "additionalProperties": False,
-    "properties": {"watermark": WATERMARK, "detection": DETECTION, "key": KEY},
+    "properties": {"watermark": WATERMARK, "detection": DETECTION, "key": KEY,
+                   "catalog": CATALOG, "recipients": RECIPIENTS, "output": OUTPUT, "dask": DASK},
 }
 
 

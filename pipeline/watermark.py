@@ -204,12 +204,12 @@ def payload_bits(message_bits, params):
     return np.concatenate([message_bits, modulation.crc_bits(message_bits, params.crc_bits)])
 
 
-def embed_cluster(cluster_points, cluster_index, material, bits, amplitude, params):
-    """Displacement of one cluster's points (equations 2-4 and the synthesis).
+def modulate_cluster(basis, cluster_index, material, bits, amplitude, params):
+    """Displacement of one cluster's points from its basis (eq. 2-4 and the synthesis).
 
     Parameters
     ----------
-    cluster_points : (n_c, 3) float
+    basis : (n_c, n_coefficients) float
     cluster_index : int
     material : bytes
         Key material of the key id.
@@ -220,13 +220,23 @@ def embed_cluster(cluster_points, cluster_index, material, bits, amplitude, para
 
     Returns
     -------
+    (n_c, 3) float
+    """
+    delta = modulation.spread(bits, params.chip_rate, sequences(material, cluster_index, params),
+                              amplitude, chip_positions(material, cluster_index, params))
+    return basis[:, : len(delta)] @ delta
+
+
+def embed_cluster(cluster_points, cluster_index, material, bits, amplitude, params):
+    """Radius mesh, basis and displacement of one cluster.
+
+    Returns
+    -------
     displacement : (n_c, 3) float
     radius : float
     """
     radius, basis = cluster_basis(cluster_points, params)
-    delta = modulation.spread(bits, params.chip_rate, sequences(material, cluster_index, params),
-                              amplitude, chip_positions(material, cluster_index, params))
-    return basis[:, : len(delta)] @ delta, radius
+    return modulate_cluster(basis, cluster_index, material, bits, amplitude, params), radius
 
 
 def embed(points, material, message_bits, params):

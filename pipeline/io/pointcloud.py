@@ -19,8 +19,8 @@ import numpy as np
 
 from .ply import PlyError, read_ply, write_ply
 
-__all__ = ["PointCloud", "InputError", "read_points", "write_points", "atomic_write_bytes",
-           "sha256_file", "FORMATS"]
+__all__ = ["PointCloud", "InputError", "read_points", "write_points", "write_array",
+           "atomic_write_bytes", "sha256_file", "FORMATS"]
 
 FORMATS = {".ply": "ply", ".pcd": "pcd", ".xyz": "xyz", ".pts": "pts", ".las": "las", ".laz": "laz"}
 
@@ -213,3 +213,50 @@ def sha256_file(path):
         for chunk in iter(lambda: f.read(1 << 20), b""):
             digest.update(chunk)
     return digest.hexdigest()
+
+
+def write_array(folder, name, points, fmt):
+    """Write bare coordinates as a new file ``folder/name.<fmt>`` (demo and test data).
+
+    ``fmt`` is a format name, or ``ply-ascii`` for an ASCII PLY.  An existing
+    file is left as it is.
+
+    Returns
+    -------
+    pathlib.Path
+    """
+    import open3d as o3d
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    suffix = "ply" if fmt == "ply-ascii" else fmt
+    path = folder / f"{name}.{suffix}"
+    if path.exists():
+        return path
+    points = np.asarray(points, dtype=np.float64)
+    if fmt in ("ply", "ply-ascii"):
+        kind = "ascii" if fmt == "ply-ascii" else "binary_little_endian"
+        head = (f"ply\nformat {kind} 1.0\ncomment pointmark demo asset\nelement vertex {len(points)}\n"
+                "property double x\nproperty double y\nproperty double z\nend_header\n").encode()
+        if kind == "ascii":
+            body = "".join(f"{x!r} {y!r} {z!r}\n" for x, y, z in points.tolist()).encode()
+        else:
+            body = points.astype("<f8").tobytes()
+        atomic_write_bytes(path, head + body)
+    elif fmt in ("las", "laz"):
+        import laspy
+
+        header = laspy.LasHeader(point_format=3, version="1.2")
+        header.scales = np.array([0.0001, 0.0001, 0.0001])
+        header.offsets = np.floor(points.min(axis=0))
+        las = laspy.LasData(header)
+        las.x, las.y, las.z = points[:, 0], points[:, 1], points[:, 2]
+        las.intensity = (np.arange(len(points)) % 65535).astype(np.uint16)
+        with _atomic_target(path) as tmp:
+            las.write(str(tmp))
+    else:
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+        with _atomic_target(path) as tmp:
+            if not o3d.io.write_point_cloud(str(tmp), cloud, write_ascii=fmt != "pcd"):
+                raise OSError(f"open3d could not write {path}")
+    return path

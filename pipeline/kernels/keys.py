@@ -13,7 +13,8 @@ import hmac
 
 import numpy as np
 
-__all__ = ["derive_key_material", "fingerprint", "pseudo_random_signs", "key_permutation"]
+__all__ = ["derive_key_material", "fingerprint", "pseudo_random_signs", "key_permutation",
+           "recipient_payload"]
 
 
 def derive_key_material(secret, key_id):
@@ -68,3 +69,14 @@ def key_permutation(material, label, length):
     """
     keys = _stream(material, "perm/" + label, 8 * length).view(">u8")
     return np.argsort(keys, kind="stable").astype(np.int64)
+
+
+def recipient_payload(asset_key, recipient, n_bits):
+    """The payload issued to one recipient of one asset: n_bits of SHA-256, as HEX.
+
+    Public (no secret): the embedding manifest maps it back to the recipient;
+    a scan matches a decoded payload to the nearest issued one.
+    """
+    digest = hashlib.sha256(f"pointmark/payload/{asset_key}/{recipient}".encode("utf-8")).digest()
+    value = int.from_bytes(digest, "big") >> (256 - n_bits)
+    return format(value, f"0{(n_bits + 3) // 4}x")
