@@ -111,6 +111,13 @@ DASK = _section("The Dask cluster that runs the graph.", {
                    "auto: a live bar on a terminal, periodic lines otherwise."),
 })
 
+WORKFLOW = _section("Settings read only by the Snakefile.", {
+    "assets": _p(("string", "null"), None, "Folder of asset files the catalogue rule records."),
+    "catalogue": _p("string", "out/catalog.parquet", "Catalogue file the workflow builds and embeds from."),
+    "shards": _p("integer", 1, "Embedding shards (parallel snakemake jobs).", minimum=1),
+    "stamps": _p("string", "out/stamps", "Folder of the rules' completion files and logs."),
+})
+
 RECIPIENTS = {
     "description": "Recipient ids; each gets its own payload and output file per asset.",
     "type": "array", "items": {"type": "string", "minLength": 1}, "uniqueItems": True,
@@ -124,7 +131,8 @@ SCHEMA = {
     "type": "object",
     "additionalProperties": False,
     "properties": {"watermark": WATERMARK, "detection": DETECTION, "key": KEY,
-                   "catalog": CATALOG, "recipients": RECIPIENTS, "output": OUTPUT, "dask": DASK},
+                   "catalog": CATALOG, "recipients": RECIPIENTS, "output": OUTPUT, "dask": DASK,
+                   "workflow": WORKFLOW},
 }
 
 

@@ -58,7 +58,7 @@ EMBED_SCHEMA = pa.schema([
     ("status", pa.string()),
     ("error", pa.string()),
     ("tool_version", pa.string()),
-    ("created_at", pa.timestamp("s", tz="UTC")),
+    ("created_at", pa.timestamp("ms", tz="UTC")),
 ])
 
 CATALOG_SCHEMA = pa.schema([

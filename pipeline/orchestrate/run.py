@@ -161,7 +161,10 @@ def start_client(cfg):
     if settings["address"]:
         return Client(settings["address"], timeout="30s"), None
     dask.config.set({"distributed.worker.multiprocessing-method": "spawn",
-                     "distributed.nanny.pre-spawn-environ": PINNED_THREADS})
+                     "distributed.nanny.pre-spawn-environ": PINNED_THREADS,
+                     # the statistical profiler samples stacks every 10 ms under the GIL:
+                     # measurable on long numerical tasks, and we do not read its output
+                     "distributed.worker.profile.enabled": False})
     n_workers = settings["n_workers"] or os.cpu_count() or 1
     logging.getLogger("distributed").setLevel(logging.WARNING)
     cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,

@@ -1,0 +1,65 @@
+"""The Snakefile: lint, dry run and a small real run of the CLI through snakemake."""
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pyarrow.dataset as ds
+import pytest
+import yaml
+
+from tests.conftest import ROOT
+from tests.orchestrate.test_run import make_catalogue
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture()
+def workdir(tmp_path):
+    shutil.copy(ROOT / "Snakefile", tmp_path)
+    shutil.copytree(ROOT / "configs", tmp_path / "configs")
+    shutil.copytree(ROOT / "envs", tmp_path / "envs")
+    make_catalogue(tmp_path / "assets", n_assets=3)
+    cfg = yaml.safe_load((ROOT / "configs" / "workflow.yaml").read_text())
+    cfg["workflow"].update(assets="assets", shards=2)
+    cfg["watermark"].update(n_bits=16, n_clusters=2, cluster_size=1200)
+    (tmp_path / "configs" / "workflow.yaml").write_text(yaml.safe_dump(cfg))
+    return tmp_path
+
+
+def _snakemake(workdir, *args):
+    bin_dir = Path(sys.executable).parent
+    env = dict(os.environ, PATH=f"{bin_dir}{os.pathsep}{os.environ['PATH']}",
+               POINTMARK_SECRET="snakemake-test-secret", PYTHONPATH=str(ROOT))
+    return subprocess.run([str(bin_dir / "snakemake"), *args], cwd=workdir, env=env,
+                          capture_output=True, text=True, timeout=600)
+
+
+def test_lint_is_clean(workdir):
+    res = _snakemake(workdir, "--lint")
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert "Lints for" not in res.stdout + res.stderr
+
+
+def test_dry_run_plans_catalogue_and_shards(workdir):
+    res = _snakemake(workdir, "-n")
+    assert res.returncode == 0, res.stderr
+    assert "catalogue" in res.stdout and "embed" in res.stdout
+
+
+def test_config_is_validated_against_the_schema(workdir):
+    cfg = workdir / "configs" / "workflow.yaml"
+    cfg.write_text(cfg.read_text().replace("shards: 2", "shards: 2\n  bogus: 1"))
+    res = _snakemake(workdir, "-n")
+    assert res.returncode != 0 and "bogus" in res.stdout + res.stderr
+
+
+def test_a_small_real_run(workdir):
+    res = _snakemake(workdir, "--cores", "2")
+    assert res.returncode == 0, res.stdout + res.stderr
+    table = ds.dataset(str(workdir / "out" / "workflow" / "manifests"), format="parquet").to_table()
+    assert table.num_rows == 6 and set(table["status"].to_pylist()) == {"ok"}
+    assert len(list((workdir / "out" / "workflow" / "marked").rglob("*.*"))) == 6
+    assert (workdir / "out" / "workflow" / "stamps" / "embed-1-of-2.done").exists()
