@@ -83,6 +83,20 @@ def build_parser():
     p.add_argument("--config", default="configs/demo.yaml")
     p.set_defaults(func=cmd_demo)
 
+    p = sub.add_parser("attack", help="apply an attack or a chain of attacks to a file")
+    p.add_argument("input")
+    p.add_argument("output")
+    p.add_argument("--attack", dest="attacks", action="append", required=True, metavar="NAME[:STRENGTH]",
+                   help="e.g. similarity, noise:0.5%%, removal:0.139, crop:0.3, resample:5000, simplify:5000")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=cmd_attack)
+
+    p = sub.add_parser("evaluate", help="robustness grid on Dask: Parquet results, plots, summary")
+    p.add_argument("config_file")
+    p.add_argument("--set", dest="sets", action="append", default=[], metavar="NAME=VALUE")
+    p.add_argument("--secret-file")
+    p.set_defaults(func=cmd_evaluate)
+
     p = sub.add_parser("schema", help="print the config JSON Schema")
     p.set_defaults(func=cmd_schema)
 
@@ -173,6 +187,37 @@ def cmd_detect(args):
         lines.append(f"payload: {result['message']}")
     _emit(args, result, lines)
     return 0
+
+
+def cmd_attack(args):
+    from pathlib import Path
+
+    from .io.pointcloud import format_of, write_array
+    from .surface import apply_chain, parse_attack
+
+    try:
+        chain = [parse_attack(a) for a in args.attacks]
+    except ValueError as exc:
+        raise InputError(f"--attack: {exc}") from None
+    cloud = read_points(args.input)
+    out = Path(args.output)
+    if out.exists() and out.resolve() == cloud.path.resolve():
+        raise InputError(f"{out}: refusing to overwrite the input")
+    try:
+        attacked = apply_chain(cloud.points, chain, rng=args.seed, faces=cloud.faces())
+    except ValueError as exc:
+        raise InputError(f"{args.input}: {exc}") from None
+    write_array(out.parent, out.stem, attacked, format_of(out), keep_existing=False)
+    print(f"wrote {out}: {len(attacked)} points ({len(cloud.points)} before)")
+    return 0
+
+
+def cmd_evaluate(args):
+    from .evaluate import run_evaluation
+
+    cfg = config_mod.load_config(args.config_file, args.sets)
+    secret = _secret(args, cfg)
+    return run_evaluation(cfg, secret)
 
 
 def cmd_schema(args):

@@ -118,6 +118,29 @@ WORKFLOW = _section("Settings read only by the Snakefile.", {
     "stamps": _p("string", "out/stamps", "Folder of the rules' completion files and logs."),
 })
 
+EVALUATE = _section("The robustness evaluation (pointmark evaluate).", {
+    "out": _p("string", "out/evaluate", "Folder of results.parquet, the plots and summary.md."),
+    "repetitions": _p("integer", 1, "Seeds per (model, attack, parameters, method).", minimum=1),
+    "methods": {"description": "Detection variants: paper (covariance registration, nearest-point "
+                               "resampling) and robust (the config's detection section).",
+                "type": "array", "items": {"enum": ["paper", "robust"]}, "minItems": 1,
+                "default": ["paper", "robust"]},
+    "experiments": {
+        "description": "Each: models, attack chains ('+' joins steps, e.g. similarity+removal:0.139), "
+                       "parameter sets (watermark overrides), and an optional mesh for simplify.",
+        "type": "array", "default": [],
+        "items": {"type": "object", "additionalProperties": False, "required": ["name", "models", "attacks"],
+                  "properties": {
+                      "name": {"type": "string"},
+                      "models": {"type": "array", "items": {"type": "string"}, "minItems": 1},
+                      "attacks": {"type": "array", "items": {"type": "string"}, "minItems": 1},
+                      "parameters": {"type": "array", "items": {"type": "object"}, "default": [{}]},
+                      "repetitions": {"type": "integer", "minimum": 1},
+                  }},
+    },
+    "false_positive_keys": _p("integer", 1000, "Wrong keys tried on each model (0: skip).", minimum=0),
+})
+
 RECIPIENTS = {
     "description": "Recipient ids; each gets its own payload and output file per asset.",
     "type": "array", "items": {"type": "string", "minLength": 1}, "uniqueItems": True,
@@ -132,7 +155,7 @@ SCHEMA = {
     "additionalProperties": False,
     "properties": {"watermark": WATERMARK, "detection": DETECTION, "key": KEY,
                    "catalog": CATALOG, "recipients": RECIPIENTS, "output": OUTPUT, "dask": DASK,
-                   "workflow": WORKFLOW},
+                   "workflow": WORKFLOW, "evaluate": EVALUATE},
 }
 
 

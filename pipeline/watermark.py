@@ -17,7 +17,8 @@ from .kernels import clustering, graph, keys, modulation, registration, resampli
 
 __all__ = [
     "WatermarkParams", "DetectParams", "Frame", "ClusterSpec", "frame_of", "plan_clusters",
-    "cluster_basis", "embed_cluster", "embed", "detect", "distortion", "WatermarkError",
+    "cluster_basis", "modulate_cluster", "embed", "embed_with_bases", "detect", "detect_with_bases",
+    "estimate_differences", "decode", "distortion", "WatermarkError",
 ]
 
 
@@ -227,18 +228,6 @@ def modulate_cluster(basis, cluster_index, material, bits, amplitude, params):
     return basis[:, : len(delta)] @ delta
 
 
-def embed_cluster(cluster_points, cluster_index, material, bits, amplitude, params):
-    """Radius mesh, basis and displacement of one cluster.
-
-    Returns
-    -------
-    displacement : (n_c, 3) float
-    radius : float
-    """
-    radius, basis = cluster_basis(cluster_points, params)
-    return modulate_cluster(basis, cluster_index, material, bits, amplitude, params), radius
-
-
 def embed(points, material, message_bits, params):
     """Watermark a point set.
 
@@ -256,16 +245,20 @@ def embed(points, material, message_bits, params):
     """
     frame = frame_of(points)
     centred = points - frame.centre
+    specs = plan_clusters(centred, params)
+    radii, bases = zip(*(cluster_basis(centred[s.members], params) for s in specs))
+    moved = embed_with_bases(centred, specs, bases, material, message_bits, params, frame.phi)
+    return moved + frame.centre, [s.record(r) for s, r in zip(specs, radii)]
+
+
+def embed_with_bases(centred, specs, bases, material, message_bits, params, phi):
+    """Watermark centred points whose clusters and bases are known, (n, 3) float."""
     bits = payload_bits(message_bits, params)
-    amplitude = params.beta * frame.phi
     moved = centred.copy()
-    records = []
-    for spec in plan_clusters(centred, params):
-        disp, radius = embed_cluster(centred[spec.members], spec.index, material, bits,
-                                     amplitude, params)
-        moved[spec.members] += disp
-        records.append(spec.record(radius))
-    return moved + frame.centre, records
+    for spec, basis in zip(specs, bases):
+        moved[spec.members] += modulate_cluster(basis, spec.index, material, bits,
+                                                params.beta * phi, params)
+    return moved
 
 
 def distortion(original, watermarked):
@@ -316,12 +309,37 @@ def detect_with_bases(suspect, reference, specs, bases, material, params, detect
 
     ``suspect`` and ``reference`` are in the original's working frame.
     """
+    estimate = estimate_differences(suspect, reference, specs, bases, detect_params)
+    return decode(estimate, specs, material, params, detect_params)
+
+
+def estimate_differences(suspect, reference, specs, bases, detect_params):
+    """Register the suspect and estimate every cluster's r-hat - r (independent of the key).
+
+    Returns
+    -------
+    dict with ``deltas`` (list of (K, 3) float), ``support`` and ``registration``
+    """
     spacing = float(np.median(resampling.nearest_spacing(reference)))
     transform = _register(suspect, reference, spacing, detect_params.registration)
     aligned = registration.apply(transform, suspect)
     deltas, support = _coefficient_differences(aligned, reference, specs, bases, detect_params)
+    return {
+        "deltas": deltas,
+        "support": support,
+        "registration": {
+            "method": detect_params.registration,
+            "scale": float(transform.scale),
+            "fitness": float(transform.fitness),
+            "residual_rel_diag": float(transform.residual) / _diag(reference),
+        },
+    }
+
+
+def decode(estimate, specs, material, params, detect_params):
+    """Correlate estimated differences with one key's sequences: bits, scores, p-value."""
     qs, energies = [], []
-    for spec, delta in zip(specs, deltas):
+    for spec, delta in zip(specs, estimate["deltas"]):
         q, energy = modulation.despread(delta, params.chip_rate, sequences(material, spec.index, params),
                                         chip_positions(material, spec.index, params))
         qs.append(q)
@@ -340,13 +358,8 @@ def detect_with_bases(suspect, reference, specs, bases, material, params, detect
         "crc_ok": crc_ok,
         "p_value": p_value,
         "detected": bool(p_value < detect_params.p_threshold),
-        "registration": {
-            "method": detect_params.registration,
-            "scale": float(transform.scale),
-            "fitness": float(transform.fitness),
-            "residual_rel_diag": float(transform.residual) / _diag(reference),
-        },
-        "clusters": [{"index": s.index, "support": int(n)} for s, n in zip(specs, support)],
+        "registration": estimate["registration"],
+        "clusters": [{"index": s.index, "support": int(n)} for s, n in zip(specs, estimate["support"])],
     }
 
 

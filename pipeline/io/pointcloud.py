@@ -215,11 +215,11 @@ def sha256_file(path):
     return digest.hexdigest()
 
 
-def write_array(folder, name, points, fmt):
-    """Write bare coordinates as a new file ``folder/name.<fmt>`` (demo and test data).
+def write_array(folder, name, points, fmt, *, keep_existing=True):
+    """Write bare coordinates as a file ``folder/name.<fmt>`` (demo data, attacked copies).
 
-    ``fmt`` is a format name, or ``ply-ascii`` for an ASCII PLY.  An existing
-    file is left as it is.
+    ``fmt`` is a format name, or ``ply-ascii`` for an ASCII PLY.  With
+    ``keep_existing`` an existing file is left as it is.
 
     Returns
     -------
@@ -231,7 +231,7 @@ def write_array(folder, name, points, fmt):
     folder.mkdir(parents=True, exist_ok=True)
     suffix = "ply" if fmt == "ply-ascii" else fmt
     path = folder / f"{name}.{suffix}"
-    if path.exists():
+    if path.exists() and keep_existing:
         return path
     points = np.asarray(points, dtype=np.float64)
     if fmt in ("ply", "ply-ascii"):

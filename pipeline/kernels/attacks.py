@@ -12,7 +12,7 @@ from scipy.spatial import cKDTree
 
 __all__ = [
     "rotation_matrix", "similarity", "paper_similarity", "random_similarity", "noise_uniform",
-    "noise_gaussian", "removal", "crop", "quantize", "smooth", "shuffle", "apply_chain", "ATTACKS",
+    "noise_gaussian", "removal", "crop_plane", "crop", "quantize", "smooth", "shuffle", "apply_chain", "ATTACKS",
 ]
 
 
@@ -79,14 +79,18 @@ def removal(points, fraction, rng=None):
     return points[np.sort(rng.choice(len(points), keep, replace=False))]
 
 
-def crop(points, fraction, rng=None):
-    """Keep the ``fraction`` of points on one side of a random plane through the model."""
+def crop_plane(points, fraction, rng=None):
+    """A random plane (unit normal, offset) with a ``fraction`` of the points on its positive side."""
     rng = np.random.default_rng(rng)
     normal = rng.normal(size=3)
     normal /= np.linalg.norm(normal)
-    height = points @ normal
-    cut = np.quantile(height, 1.0 - fraction)
-    return points[height >= cut]
+    return normal, float(np.quantile(points @ normal, 1.0 - fraction))
+
+
+def crop(points, fraction, rng=None):
+    """Keep the ``fraction`` of points on one side of a random plane through the model."""
+    normal, offset = crop_plane(points, fraction, rng)
+    return points[points @ normal >= offset]
 
 
 def quantize(points, bits, rng=None):

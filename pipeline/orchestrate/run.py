@@ -168,7 +168,7 @@ def start_client(cfg):
     n_workers = settings["n_workers"] or os.cpu_count() or 1
     logging.getLogger("distributed").setLevel(logging.WARNING)
     cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
-                           dashboard_address=None, memory_limit=settings["memory_limit"],
+                           dashboard_address=":0", memory_limit=settings["memory_limit"],
                            silence_logs=logging.CRITICAL)
     return Client(cluster), cluster
 

@@ -1,0 +1,126 @@
+"""Surface attacks that need open3d: resampling and mesh simplification.
+
+Kept out of :mod:`pipeline.kernels` (which is pure NumPy/SciPy).  Both are
+seeded: open3d's global generator is seeded from the given ``rng``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .kernels import attacks
+
+__all__ = ["resample", "simplify", "apply_chain", "ATTACK_NAMES", "parse_attack"]
+
+
+def _o3d():
+    import open3d as o3d
+
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+    return o3d
+
+
+def _seed(rng):
+    rng = np.random.default_rng(rng)
+    _o3d().utility.random.seed(int(rng.integers(0, 2**31 - 1)))
+    return rng
+
+
+def resample(points, n_points, rng=None, *, depth=8):
+    """Screened Poisson reconstruction of the cloud, then ``n_points`` fresh samples.
+
+    No input point survives: samples are drawn uniformly on the reconstructed
+    triangles, away from the (trimmed) low-density parts of the surface.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+    n_points : int
+
+    Returns
+    -------
+    (n_points, 3) float
+    """
+    o3d = _o3d()
+    rng = _seed(rng)
+    centre = points.mean(axis=0)
+    scale = float((points.max(axis=0) - points.min(axis=0)).max())
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector((points - centre) / scale))
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=20))
+    cloud.orient_normals_consistent_tangent_plane(12)
+    mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(cloud, depth=depth)
+    density = np.asarray(density)
+    mesh.remove_vertices_by_mask(density < np.quantile(density, 0.05))
+    sampled = mesh.sample_points_uniformly(number_of_points=int(n_points))
+    out = np.asarray(sampled.points) * scale + centre
+    return out[rng.permutation(len(out))]
+
+
+def simplify(points, n_vertices, rng=None, *, faces):
+    """Quadric mesh decimation to ``n_vertices`` vertices; faces are dropped.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+    n_vertices : int
+    faces : (f, 3) int
+        Triangles of the asset (the paper's "simulated simplification").
+
+    Returns
+    -------
+    (m, 3) float, m close to ``n_vertices``
+    """
+    if faces is None or len(faces) == 0:
+        raise ValueError("simplify needs an asset with faces (a PLY mesh)")
+    o3d = _o3d()
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(points),
+                                     o3d.utility.Vector3iVector(np.asarray(faces, dtype=np.int32)))
+    target = int(2 * n_vertices)          # a closed-ish mesh has about twice as many faces as vertices
+    small = mesh.simplify_quadric_decimation(target_number_of_triangles=target)
+    small.remove_unreferenced_vertices()
+    return np.asarray(small.vertices).copy()
+
+
+ATTACK_NAMES = sorted([*attacks.ATTACKS, "resample", "simplify"])
+
+
+def parse_attack(text):
+    """``NAME[:STRENGTH]`` -> (name, float or None); a ``%`` suffix divides by 100."""
+    name, _, value = text.partition(":")
+    if name not in ATTACK_NAMES:
+        raise ValueError(f"unknown attack {name!r}; known: {', '.join(ATTACK_NAMES)}")
+    if not value:
+        return name, None
+    try:
+        strength = float(value[:-1]) / 100.0 if value.endswith("%") else float(value)
+    except ValueError:
+        raise ValueError(f"attack {text!r}: strength {value!r} is not a number") from None
+    return name, strength
+
+
+def apply_chain(points, chain, rng=None, *, faces=None):
+    """Apply a chain of attacks, the open3d ones included.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+    chain : list of (name, strength or None)
+    rng : int or numpy.random.Generator
+    faces : (f, 3) int, optional
+        Needed by ``simplify`` (only as the chain's first step).
+
+    Returns
+    -------
+    (m, 3) float
+    """
+    rng = np.random.default_rng(rng)
+    for i, (name, strength) in enumerate(chain):
+        if name == "resample":
+            points = resample(points, int(strength), rng)
+        elif name == "simplify":
+            if i != 0:
+                raise ValueError("simplify must come first: later steps lose the faces")
+            points = simplify(points, int(strength), rng, faces=faces)
+        else:
+            points = attacks.apply_chain(points, [(name, strength)], rng)
+    return points
