@@ -97,6 +97,14 @@ def build_parser():
     p.add_argument("--secret-file")
     p.set_defaults(func=cmd_evaluate)
 
+    p = sub.add_parser("scan", help="which asset and recipient suspect files came from "
+                                    "(exit 0 no match, 1 match, 2 bad config, 3 failures)")
+    p.add_argument("config_file")
+    p.add_argument("--set", dest="sets", action="append", default=[], metavar="NAME=VALUE")
+    p.add_argument("--secret-file")
+    p.add_argument("--force", action="store_true", help="rescan suspects already scanned")
+    p.set_defaults(func=cmd_scan)
+
     p = sub.add_parser("schema", help="print the config JSON Schema")
     p.set_defaults(func=cmd_schema)
 
@@ -218,6 +226,13 @@ def cmd_evaluate(args):
     cfg = config_mod.load_config(args.config_file, args.sets)
     secret = _secret(args, cfg)
     return run_evaluation(cfg, secret)
+
+
+def cmd_scan(args):
+    from .scan import run_scan
+
+    cfg = config_mod.load_config(args.config_file, args.sets)
+    return run_scan(cfg, _secret(args, cfg), force=args.force)
 
 
 def cmd_schema(args):

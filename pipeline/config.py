@@ -141,6 +141,17 @@ EVALUATE = _section("The robustness evaluation (pointmark evaluate).", {
     "false_positive_keys": _p("integer", 1000, "Wrong keys tried on each model (0: skip).", minimum=0),
 })
 
+SCAN = _section("Leak-detection scans (pointmark scan).", {
+    "suspects": _p(("string", "null"), None, "Folder or glob of suspect files."),
+    "catalogue": _p(("string", "null"), None, "Catalogue file (pointmark catalog build) of the originals."),
+    "manifests": _p(("string", "null"), None,
+                    "Embedding manifest folder (issued payloads); default output.manifests."),
+    "out": _p("string", "out/scan", "Detection manifests: one Parquet file per suspect."),
+    "top_k": _p("integer", 3, "Candidate assets checked per suspect.", minimum=1),
+    "max_bit_errors": _p("integer", 3, "A decoded payload within this many bits of an issued one "
+                         "identifies its recipient.", minimum=0),
+})
+
 RECIPIENTS = {
     "description": "Recipient ids; each gets its own payload and output file per asset.",
     "type": "array", "items": {"type": "string", "minLength": 1}, "uniqueItems": True,
@@ -155,7 +166,8 @@ SCHEMA = {
     "additionalProperties": False,
     "properties": {"watermark": WATERMARK, "detection": DETECTION, "key": KEY,
                    "catalog": CATALOG, "recipients": RECIPIENTS, "output": OUTPUT, "dask": DASK,
-                   "workflow": WORKFLOW, "evaluate": EVALUATE},
+                   "workflow": WORKFLOW, "evaluate": EVALUATE,
+                   "scan": SCAN},
 }
 
 

@@ -8,6 +8,7 @@ produce the same bytes.
 
 from __future__ import annotations
 
+import time
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -320,11 +321,15 @@ def estimate_differences(suspect, reference, specs, bases, detect_params):
     -------
     dict with ``deltas`` (list of (K, 3) float), ``support`` and ``registration``
     """
+    t0 = time.perf_counter()
     spacing = float(np.median(resampling.nearest_spacing(reference)))
     transform = _register(suspect, reference, spacing, detect_params.registration)
     aligned = registration.apply(transform, suspect)
+    t1 = time.perf_counter()
     deltas, support = _coefficient_differences(aligned, reference, specs, bases, detect_params)
     return {
+        "seconds_registration": t1 - t0,
+        "seconds_estimate": time.perf_counter() - t1,
         "deltas": deltas,
         "support": support,
         "registration": {

@@ -1,0 +1,106 @@
+"""Leak scans: attribute attacked copies to asset and recipient; say no to the rest."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from pipeline import config
+from pipeline.demo import procedural_shape
+from pipeline.io.catalog import catalogue_record, discover_assets, write_catalogue
+from pipeline.io.pointcloud import read_points, write_array
+from pipeline.kernels import attacks
+from pipeline.orchestrate.progress import Progress
+from pipeline.orchestrate.run import plan_job, run_job
+from pipeline.scan import read_scan
+from tests.conftest import ROOT
+
+pytestmark = pytest.mark.slow
+SECRET = "scan-test-secret-91c"
+RECIPIENTS = ["alice", "bob", "carol"]
+SHAPES = [("blob", 1), ("torus", 2), ("shell", 3), ("terrain", 4), ("blob", 5), ("torus", 6)]
+
+# suspect name -> (asset index, recipient index, attack chain)
+SUSPECTS = {
+    "leak-similarity": (0, 1, [("random_similarity", None)]),
+    "leak-noise": (1, 2, [("noise", 0.005)]),
+    "leak-removal": (2, 0, [("removal", 0.5)]),
+    "leak-crop": (3, 1, [("crop", 0.7)]),
+    "leak-exact": (4, 2, []),
+}
+
+
+@pytest.fixture(scope="module")
+def scanned(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("scan")
+    for i, (kind, seed) in enumerate(SHAPES):
+        write_array(tmp / "assets", f"asset-{i}", procedural_shape(kind, 5000, seed=seed) * 20, "ply")
+    rows = [catalogue_record(a) for a in discover_assets(tmp / "assets", default_recipients=RECIPIENTS)]
+    write_catalogue(rows, tmp / "catalog.parquet")
+    cfg_dict = {
+        "catalog": {"source": str(tmp / "catalog.parquet")}, "recipients": RECIPIENTS,
+        "output": {"dir": str(tmp / "marked"), "manifests": str(tmp / "manifests")},
+        "key": {"id": "scan-key", "secret_file": str(tmp / "key")},
+        "watermark": {"n_clusters": 2, "cluster_size": 2000},
+        "scan": {"suspects": str(tmp / "suspects"), "catalogue": str(tmp / "catalog.parquet"),
+                 "out": str(tmp / "scan")},
+        "dask": {"n_workers": 2, "progress": "none"},
+    }
+    (tmp / "key").write_text(SECRET)
+    (tmp / "scan.yaml").write_text(yaml.safe_dump(cfg_dict))
+    cfg = config.load_config(tmp / "scan.yaml")
+    job = plan_job(cfg, SECRET.encode())
+    assert run_job(job, cfg, progress=Progress())["ok"] == 6
+    rng = np.random.default_rng(11)
+    for name, (a, r, chain) in SUSPECTS.items():
+        marked = tmp / "marked" / RECIPIENTS[r] / f"asset-{a}.ply"
+        if not chain:
+            (tmp / "suspects").mkdir(exist_ok=True)
+            (tmp / "suspects" / f"{name}.ply").write_bytes(marked.read_bytes())
+            continue
+        pts = attacks.apply_chain(read_points(marked).points, chain + [("shuffle", None)], rng)
+        write_array(tmp / "suspects", name, pts, "ply")
+    write_array(tmp / "suspects", "unrelated", procedural_shape("shell", 5000, seed=99) * 20, "ply")
+    write_array(tmp / "suspects", "unmarked", read_points(tmp / "assets" / "asset-5.ply").points[::-1], "ply")
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    res = subprocess.run([sys.executable, "-m", "pipeline.cli", "scan", str(tmp / "scan.yaml")], cwd=tmp,
+                         env=env, capture_output=True, text=True, timeout=900)
+    return tmp, res, env
+
+
+def _best(tmp):
+    return {Path(r["suspect_path"]).stem: r for r in read_scan(tmp / "scan") if r["best"]}
+
+
+def test_scan_exits_1_on_a_match(scanned):
+    _, res, _ = scanned
+    assert res.returncode == 1, res.stdout + res.stderr
+
+
+@pytest.mark.parametrize("name", list(SUSPECTS))
+def test_attacked_copies_are_attributed_to_asset_and_recipient(scanned, name):
+    tmp, _, _ = scanned
+    a, r, _ = SUSPECTS[name]
+    row = _best(tmp)[name]
+    assert row["verdict"] == "match", row
+    assert row["candidate_asset"] == f"asset-{a}" and row["recipient"] == RECIPIENTS[r]
+    assert row["bit_errors"] <= 3
+
+
+@pytest.mark.parametrize("name", ["unrelated", "unmarked"])
+def test_unrelated_and_unmarked_are_no_match(scanned, name):
+    tmp, _, _ = scanned
+    assert _best(tmp)[name]["verdict"] == "no match"
+
+
+def test_a_second_scan_skips_suspects_already_scanned(scanned):
+    tmp, _, env = scanned
+    before = len(read_scan(tmp / "scan"))
+    res = subprocess.run([sys.executable, "-m", "pipeline.cli", "scan", str(tmp / "scan.yaml")], cwd=tmp,
+                         env=env, capture_output=True, text=True, timeout=600)
+    assert "7 already scanned" in res.stdout, res.stdout + res.stderr
+    assert res.returncode == 0 and len(read_scan(tmp / "scan")) == before
