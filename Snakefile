@@ -51,3 +51,35 @@ rule embed:
     shell:
         "pointmark run {input.config} --shard {params.shard} "
         "--set catalog.source={input.catalogue} > {log} 2>&1"
+
+
+# Scheduled leak scan: `snakemake --cores 2 --forcerun scan scan` (see README for cron).
+# pointmark scan exits 1 when it found a match; that is a result, not a failure.
+rule scan:
+    input:
+        catalogue=WF["catalogue"],
+        config=CONFIG,
+        embedded=expand(f"{WF['stamps']}/embed-{{shard}}-of-{WF['shards']}.done", shard=SHARDS),
+    output:
+        touch(f"{WF['stamps']}/scan.done"),
+    log:
+        f"{WF['stamps']}/scan.log",
+    conda:
+        "envs/pointmark.yaml"
+    shell:
+        "pointmark scan {input.config} --set scan.catalogue={input.catalogue} > {log} 2>&1 "
+        "|| [ $? -eq 1 ]"
+
+
+# Robustness report (heavy, on demand): `snakemake --cores 2 evaluate`.
+rule evaluate:
+    input:
+        config=CONFIG,
+    output:
+        f"{config['evaluate']['out']}/summary.md",
+    log:
+        f"{WF['stamps']}/evaluate.log",
+    conda:
+        "envs/pointmark.yaml"
+    shell:
+        "pointmark evaluate {input.config} > {log} 2>&1"

@@ -56,9 +56,16 @@ def test_config_is_validated_against_the_schema(workdir):
     assert res.returncode != 0 and "bogus" in res.stdout + res.stderr
 
 
-def test_a_small_real_run(workdir):
+def test_a_small_real_run_then_a_scan(workdir):
     res = _snakemake(workdir, "--cores", "2")
     assert res.returncode == 0, res.stdout + res.stderr
+    leak = workdir / "out" / "workflow" / "suspects"
+    leak.mkdir(parents=True)
+    shutil.copy(workdir / "out" / "workflow" / "marked" / "market-b" / "asset-1.pcd", leak / "found.pcd")
+    res = _snakemake(workdir, "--cores", "2", "scan")
+    assert res.returncode == 0, res.stdout + res.stderr
+    found = ds.dataset(str(workdir / "out" / "workflow" / "scan"), format="parquet").to_table().to_pylist()
+    assert [(r["candidate_asset"], r["recipient"], r["verdict"]) for r in found] == [("asset-1", "market-b", "match")]
     table = ds.dataset(str(workdir / "out" / "workflow" / "manifests"), format="parquet").to_table()
     assert table.num_rows == 6 and set(table["status"].to_pylist()) == {"ok"}
     assert len(list((workdir / "out" / "workflow" / "marked").rglob("*.*"))) == 6
