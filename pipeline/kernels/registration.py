@@ -214,12 +214,25 @@ def register_robust(suspect, original, *, spacing, coarse_points=1500, rng=0):
     if len(suspect) > coarse_points:
         sub = suspect[np.sort(rng.choice(len(suspect), coarse_points, replace=False))]
     identity = Similarity(np.eye(3), 1.0, np.zeros(3))
+    frames = list(_frame_hypotheses(suspect, original, _axis_rotations()))
     best = None
-    for hyp in [identity, *_frame_hypotheses(suspect, original, _axis_rotations())]:
+    for hyp in [identity, *frames]:
         fit = icp_similarity(sub, tree, original, hyp, spacing=spacing, iterations=15)
+        if not _plausible(fit.scale, (hyp.scale, frames[0].scale)):
+            continue  # collapsed onto a patch of the original, or blown up
         key = (round(fit.fitness, 2), -fit.residual)
         if best is None or key > best[0]:
             best = (key, fit)
         if hyp is identity and fit.fitness > 0.9 and fit.residual < spacing:
             break
-    return icp_similarity(suspect, tree, original, best[1], spacing=spacing, iterations=60)
+    start = best[1] if best is not None else frames[0]
+    return icp_similarity(suspect, tree, original, start, spacing=spacing, iterations=60)
+
+
+def _plausible(scale, expected, factor=2.0):
+    """A fitted scale within ``factor`` of any expected one.
+
+    ICP with free scale can shrink a distant suspect onto one patch of the
+    original, where every point then "fits"; such a fit is rejected.
+    """
+    return any(e / factor < scale < e * factor for e in expected)

@@ -89,7 +89,8 @@ def snap_to_original(original, suspect):
 
 
 def fit_spectral_displacement(original, normals, suspect, clusters, bases, *,
-                              iterations=3, ridge=1e-3, cut=None, tangential_gate=0.25):
+                              iterations=3, ridge=1e-3, cut=None, tangential_gate=0.25,
+                              ratio_gate=None):
     """Least-squares coefficient differences of every cluster.
 
     Parameters
@@ -124,7 +125,8 @@ def fit_spectral_displacement(original, normals, suspect, clusters, bases, *,
         deformed = original.copy()
         for members, basis, delta in zip(clusters, bases, deltas):
             deformed[members] += basis @ delta
-        dist, nearest = cKDTree(deformed).query(suspect)
+        dist2, nearest2 = cKDTree(deformed).query(suspect, k=2)
+        dist, nearest = dist2[:, 0], nearest2[:, 0]
         near = dist < cut
         owner = np.full(len(original), -1, dtype=np.int64)
         for c, members in enumerate(clusters):
@@ -135,7 +137,10 @@ def fit_spectral_displacement(original, normals, suspect, clusters, bases, *,
             if support[c] == 0:
                 deltas[c] = np.zeros_like(deltas[c])
                 continue
-            reliable = dist[pick] < tangential_gate * spacing[nearest[pick]]
+            if ratio_gate is None:
+                reliable = dist[pick] < tangential_gate * spacing[nearest[pick]]
+            else:
+                reliable = dist[pick] < ratio_gate * dist2[pick, 1]
             deltas[c] = _solve_cluster(
                 original, normals, deformed, suspect[pick], nearest[pick], reliable, members,
                 basis, ridge,

@@ -34,3 +34,16 @@ def test_robust_registration_survives_similarity_with_removal_and_noise():
     assert abs(t.scale - 1 / 3.7) < 0.01 * (1 / 3.7)
     assert np.median(err) < 0.005
     assert t.fitness > 0.95
+
+
+def test_robust_registration_rejects_a_collapsed_scale_far_from_the_original():
+    # A distant, shrunken copy: free-scale ICP from the identity can collapse
+    # the suspect onto one patch of the original; that fit must not win.
+    pts = sphere_patch(6000)
+    rng = np.random.default_rng(11)
+    keep = np.sort(rng.choice(len(pts), 1500, replace=False))
+    rot = attacks.rotation_matrix("x", -60) @ attacks.rotation_matrix("z", 200)
+    moved = attacks.similarity(pts[keep], rot, 0.2, [150.0, -80.0, 60.0])
+    t = register_robust(moved[rng.permutation(len(keep))], pts, spacing=0.02)
+    assert abs(t.scale - 5.0) < 0.05 * 5.0
+    assert t.fitness > 0.95
