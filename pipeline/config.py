@@ -83,7 +83,14 @@ DETECTION = _section("Detection (paper, section 2.2, Extraction).", {
     "iterations": _p("integer", 2, "Least-squares refits (spectral).", minimum=1, maximum=20),
     "ridge": _p("number", 1.0, "Relative ridge of the least-squares fit (spectral).", minimum=0),
     "tangential_gate": _p("number", 0.25,
-                          "Use tangential misfit of matches closer than this many spacings.", minimum=0),
+                          "Noisy suspects: tangential misfit of matches closer than this many spacings.",
+                          minimum=0),
+    "ratio_gate": _p("number", 0.5,
+                     "Clean suspects: tangential misfit of matches nearer than this times the "
+                     "second-nearest distance.", minimum=0, maximum=1),
+    "gate_switch": _p("number", 0.4,
+                      "Noise across the surface, in median spacings, above which the fixed gate "
+                      "replaces the ratio gate (0: always fixed).", minimum=0),
 })
 
 KEY = _section("Key identity; the secret itself comes from POINTMARK_SECRET or secret_file.", {

@@ -68,26 +68,41 @@ def plot_noise_curves(rows, path):
 
 
 def plot_attacks(rows, path):
-    """Mean BER per attack chain, paper method against robust method."""
+    """Mean BER per attack chain, paper method against robust method, one panel per model."""
     plt = _plt()
     table = _group([r for r in rows if r["experiment"] != "noise_curve"], ("model", "attack", "method"))
-    labels = sorted({(m, a) for m, a, _ in table})
+    models = sorted({k[0] for k in table})
     methods = sorted({k[2] for k in table})
-    if not labels:
+    if not models:
         return None
-    fig, ax = plt.subplots(figsize=(max(7, 0.7 * len(labels) + 3), 5))
-    width = 0.8 / len(methods)
-    for i, method in enumerate(methods):
-        y = [np.mean([r["ber"] for r in table.get((m, a, method), [])] or [np.nan]) for m, a in labels]
-        ax.bar(np.arange(len(labels)) + i * width, y, width, label=f"detection: {method}")
-    ax.set_xticks(np.arange(len(labels)) + 0.4 - width / 2)
-    ax.set_xticklabels([f"{a}\n{m}" for m, a in labels], rotation=60, ha="right", fontsize=7)
-    ax.set_ylabel("bit error rate (mean over runs)")
-    ax.set_ylim(0, 0.6)
-    ax.set_title("Bit error rate per attack (0 = payload intact)")
-    ax.legend()
-    ax.grid(axis="y", alpha=0.3)
-    fig.tight_layout()
+    attacks = {m: sorted({a for mm, a, _ in table if mm == m}) for m in models}
+    fig, axes = plt.subplots(
+        len(models), 1, figsize=(9, 1.2 + 0.42 * sum(len(a) for a in attacks.values()) + 0.5 * len(models)),
+        squeeze=False, sharex=True, gridspec_kw={"height_ratios": [len(attacks[m]) for m in models]},
+    )
+    height = 0.8 / len(methods)
+    for ax, model in zip(axes[:, 0], models):
+        names = attacks[model]
+        for i, method in enumerate(methods):
+            y = np.arange(len(names)) + (i - (len(methods) - 1) / 2) * height
+            ber = [np.mean([r["ber"] for r in table.get((model, a, method), [])] or [np.nan])
+                   for a in names]
+            ax.barh(y, ber, height, color=f"C{i}", label=f"detection: {method}")
+            for yy, b in zip(y, ber):   # print the value, so that a zero is visible too
+                if np.isfinite(b):
+                    ax.text(b + 0.005, yy, f"{b:.3g}", va="center", fontsize=7)
+        ax.set_yticks(np.arange(len(names)))
+        ax.set_yticklabels(names, fontsize=8)
+        ax.invert_yaxis()
+        ax.set_title(model, fontsize=9, loc="left")
+        ax.grid(axis="x", alpha=0.3)
+    axes[-1, 0].set_xlim(0, 0.75)
+    axes[-1, 0].set_xlabel("bit error rate (fraction of payload bits wrong, mean over runs; 0 = intact)")
+    fig.suptitle("Bit error rate per attack: the paper's detection against the robust one")
+    handles, names = axes[0, 0].get_legend_handles_labels()
+    fig.legend(handles, names, loc="upper center", ncol=len(methods), fontsize=8,
+               bbox_to_anchor=(0.5, 1 - 0.45 / fig.get_figheight()))
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.7 / fig.get_figheight()))
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path

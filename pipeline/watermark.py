@@ -62,7 +62,9 @@ class DetectParams:
     p_threshold: float = 1e-6         # "watermarked" when p_value < p_threshold
     iterations: int = 2               # least-squares refits
     ridge: float = 1.0                # relative ridge of the least-squares fit
-    tangential_gate: float = 0.25     # use tangential misfit where the match is within this x spacing
+    tangential_gate: float = 0.25     # noisy suspects: tangential misfit of matches within this x spacing
+    ratio_gate: float = 0.5           # clean suspects: of matches nearer than this x the second nearest
+    gate_switch: float = 0.4          # noise (x median spacing) at which the fixed gate takes over
 
 
 @dataclass(frozen=True)
@@ -390,7 +392,8 @@ def _coefficient_differences(aligned, reference, specs, bases, detect_params):
     return resampling.fit_spectral_displacement(
         reference, normals, aligned, [s.members for s in specs], bases,
         iterations=detect_params.iterations, ridge=detect_params.ridge,
-        tangential_gate=detect_params.tangential_gate,
+        tangential_gate=detect_params.tangential_gate, ratio_gate=detect_params.ratio_gate,
+        gate_switch=detect_params.gate_switch,
     )
 
 

@@ -26,6 +26,7 @@ from scipy.spatial import cKDTree
 
 __all__ = [
     "nearest_spacing", "estimate_normals", "snap_to_original", "fit_spectral_displacement",
+    "normal_noise",
 ]
 
 
@@ -90,7 +91,7 @@ def snap_to_original(original, suspect):
 
 def fit_spectral_displacement(original, normals, suspect, clusters, bases, *,
                               iterations=3, ridge=1e-3, cut=None, tangential_gate=0.25,
-                              ratio_gate=None):
+                              ratio_gate=0.5, gate_switch=0.4):
     """Least-squares coefficient differences of every cluster.
 
     Parameters
@@ -108,6 +109,13 @@ def fit_spectral_displacement(original, normals, suspect, clusters, bases, *,
     cut : float, optional
         Suspect points farther than this from the deformed original are
         ignored (default: 4 times the original's median spacing).
+    tangential_gate, ratio_gate, gate_switch : float
+        Which matches also constrain tangential motion.  While the suspect's
+        noise across the surface is below ``gate_switch`` times the median
+        spacing, a match whose nearest distance is under ``ratio_gate`` times
+        its second-nearest (unambiguous); above it, only matches closer than
+        ``tangential_gate`` times the local spacing.  ``gate_switch=0`` always
+        uses the fixed gate, ``inf`` always the ratio.
 
     Returns
     -------
@@ -121,6 +129,7 @@ def fit_spectral_displacement(original, normals, suspect, clusters, bases, *,
         cut = 4.0 * float(np.median(spacing))
     deltas = [np.zeros((e.shape[1], 3)) for e in bases]
     support = [0] * len(clusters)
+    use_ratio = None
     for _ in range(iterations):
         deformed = original.copy()
         for members, basis, delta in zip(clusters, bases, deltas):
@@ -128,6 +137,9 @@ def fit_spectral_displacement(original, normals, suspect, clusters, bases, *,
         dist2, nearest2 = cKDTree(deformed).query(suspect, k=2)
         dist, nearest = dist2[:, 0], nearest2[:, 0]
         near = dist < cut
+        if use_ratio is None:
+            noise = normal_noise(suspect[near], original[nearest[near]], normals[nearest[near]])
+            use_ratio = noise < gate_switch * float(np.median(spacing))
         owner = np.full(len(original), -1, dtype=np.int64)
         for c, members in enumerate(clusters):
             owner[members] = c
@@ -137,15 +149,36 @@ def fit_spectral_displacement(original, normals, suspect, clusters, bases, *,
             if support[c] == 0:
                 deltas[c] = np.zeros_like(deltas[c])
                 continue
-            if ratio_gate is None:
-                reliable = dist[pick] < tangential_gate * spacing[nearest[pick]]
-            else:
+            if use_ratio:
                 reliable = dist[pick] < ratio_gate * dist2[pick, 1]
+            else:
+                reliable = dist[pick] < tangential_gate * spacing[nearest[pick]]
             deltas[c] = _solve_cluster(
                 original, normals, deformed, suspect[pick], nearest[pick], reliable, members,
                 basis, ridge,
             )
     return deltas, support
+
+
+def normal_noise(points, targets, normals):
+    """Robust standard deviation of the offsets along the normals.
+
+    Parameters
+    ----------
+    points, targets : (k, 3) float
+        Matched suspect and original points.
+    normals : (k, 3) float, unit normals at ``targets``.
+
+    Returns
+    -------
+    float
+        Median absolute deviation of the normal offsets, scaled to a standard
+        deviation (0 when there are no matches).
+    """
+    if len(points) == 0:
+        return 0.0
+    offset = np.einsum("ki,ki->k", points - targets, normals)
+    return 1.4826 * float(np.median(np.abs(offset - np.median(offset))))
 
 
 def _solve_cluster(original, normals, deformed, points, targets, reliable, members, basis, ridge):

@@ -1,0 +1,69 @@
+import numpy as np
+from scipy.spatial import cKDTree
+
+from pipeline.kernels import graph, spectral
+from pipeline.kernels.resampling import (
+    estimate_normals, fit_spectral_displacement, nearest_spacing, normal_noise, snap_to_original,
+)
+from tests.conftest import sphere_patch
+
+
+def _basis(points, k=40):
+    radius = graph.valence_radius(points, 12)
+    adjacency, _ = graph.connect_components(points, graph.radius_graph(points, radius))
+    _, vectors = spectral.spectral_basis(graph.laplacian(adjacency), k)
+    return vectors
+
+
+def test_snap_keeps_matches_under_half_the_spacing_only():
+    pts = sphere_patch(2000)
+    half = 0.5 * nearest_spacing(pts)
+    rng = np.random.default_rng(1)
+    direction = rng.normal(size=pts.shape)
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    moved = pts + 0.2 * half[:, None] * direction
+    order = rng.permutation(len(pts))
+    resampled, matched = snap_to_original(pts, moved[order])
+    assert matched.all()
+    assert np.allclose(resampled, moved)
+    far = 1.5 * pts                                   # a shell well away from the surface
+    assert not snap_to_original(pts, far)[1].any()
+
+
+def test_normal_noise_measures_offsets_along_the_normals():
+    rng = np.random.default_rng(2)
+    plane = np.c_[rng.uniform(-1, 1, (5000, 2)), np.zeros(5000)]
+    noisy = plane + np.c_[np.zeros((5000, 2)), rng.normal(0, 0.01, 5000)]
+    sigma = normal_noise(noisy, plane, estimate_normals(plane))
+    assert abs(sigma - 0.01) < 0.001
+    assert normal_noise(plane[:0], plane[:0], plane[:0]) == 0.0
+
+
+def test_spectral_fit_recovers_coefficients_from_fresh_samples():
+    # The suspect shares no point with the original: a denser, independent
+    # sample of the same surface, deformed by E @ delta.  Motion along the
+    # surface cannot be seen in such a sample, so single coefficients are
+    # noisy; what detection needs, groups of chips correlated with the
+    # sequence, must come out right.  Subtracting the fit of the undeformed
+    # sample removes the bias of the surface's curvature.
+    original = sphere_patch(3000, rng=0)
+    basis = _basis(original)
+    rng = np.random.default_rng(3)
+    delta = rng.choice([-1.0, 1.0], size=(basis.shape[1], 3)) * 0.004
+    fresh = sphere_patch(12000, rng=7)
+    _, owner = cKDTree(original).query(fresh)
+    suspect = (fresh + (basis @ delta)[owner])[rng.permutation(len(fresh))]
+    normals = estimate_normals(original)
+    unrelated = rng.choice([-1.0, 1.0], size=delta.shape)
+    for gate_switch in (0.0, np.inf):
+        fit = [
+            fit_spectral_displacement(original, normals, cloud, [np.arange(len(original))], [basis],
+                                      iterations=2, ridge=1.0, gate_switch=gate_switch)
+            for cloud in (suspect, fresh)
+        ]
+        assert fit[0][1] == [len(suspect)]
+        estimate = fit[0][0][0] - fit[1][0][0]
+        assert np.corrcoef(estimate.ravel(), delta.ravel())[0, 1] > 0.5
+        assert abs(np.corrcoef(estimate.ravel(), unrelated.ravel())[0, 1]) < 0.25
+        chips = (estimate * np.sign(delta)).reshape(10, -1).sum(axis=1)
+        assert (chips > 0).all()
