@@ -24,6 +24,10 @@ PAPER_SAYS = {
 }
 
 
+# the experiment whose rows make the Figure-8 curves; every other one is an attack table
+NOISE_CURVE = "noise_curve"
+
+
 def _plt():
     import matplotlib
 
@@ -43,7 +47,7 @@ def _group(rows, keys):
 def plot_noise_curves(rows, path):
     """BER against noise amplitude, one line per (beta, c), one panel per method (Figure 8)."""
     plt = _plt()
-    noise = [r for r in rows if r["attack"].startswith("noise:") and "+" not in r["attack"]]
+    noise = [r for r in rows if r["experiment"] == NOISE_CURVE]
     methods = sorted({r["method"] for r in noise})
     if not noise:
         return None
@@ -70,7 +74,7 @@ def plot_noise_curves(rows, path):
 def plot_attacks(rows, path):
     """Mean BER per attack chain, paper method against robust method, one panel per model."""
     plt = _plt()
-    table = _group([r for r in rows if r["experiment"] != "noise_curve"], ("model", "attack", "method"))
+    table = _group([r for r in rows if r["experiment"] != NOISE_CURVE], ("model", "attack", "method"))
     models = sorted({k[0] for k in table})
     methods = sorted({k[2] for k in table})
     if not models:
@@ -146,7 +150,7 @@ def write_report(folder, rows, fp_rows, p_threshold, seconds):
              f"{len(rows)} trials in {seconds:.0f} s. BER = bit errors / payload bits; every attacked "
              "copy was shuffled before detection.", ""]
     attack_rows = []
-    for (exp, model, attack), rs in sorted(_group([r for r in rows if r["experiment"] != "noise_curve"],
+    for (exp, model, attack), rs in sorted(_group([r for r in rows if r["experiment"] != NOISE_CURVE],
                                                   ("experiment", "model", "attack")).items()):
         by = _group(rs, ("method",))
         cells = []
@@ -158,7 +162,7 @@ def write_report(folder, rows, fp_rows, p_threshold, seconds):
     if attack_rows:
         lines += ["## Attacks", "", _md_table(["experiment", "model", "attack", "BER, paper method",
                                               "BER, robust method", "the paper reports"], attack_rows), ""]
-    noise = [r for r in rows if r["experiment"] == "noise_curve"]
+    noise = [r for r in rows if r["experiment"] == NOISE_CURVE]
     if noise:
         curve = []
         for (method, beta, c, s), rs in sorted(_group(noise, ("method", "beta", "chip_rate", "strength")).items()):
