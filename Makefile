@@ -34,4 +34,4 @@ schema: setup
 	$(VENV)/bin/pointmark schema > configs/schema.json
 
 clean:
-	rm -rf $(VENV) demo out .pytest_cache
+	rm -rf $(VENV) catalog/demo out .pytest_cache

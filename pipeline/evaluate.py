@@ -26,7 +26,7 @@ from .surface import apply_chain, parse_attack
 from .watermark import (ClusterSpec, DetectParams, cluster_basis, decode, distortion, embed_with_bases,
                         estimate_differences, frame_of, plan_clusters)
 
-__all__ = ["run_evaluation", "parse_chain", "trial"]
+__all__ = ["run_evaluation", "parse_chain", "trial", "prepare_bases", "load_bases"]
 
 MESSAGE = "5ca1ab1e"
 _CLUSTER_KEYS = ("valence", "n_clusters", "cluster_size", "seeds", "on_touch", "cover")
@@ -67,7 +67,8 @@ def prepare_bases(model_path, params, cache_path):
     return str(cache_path)
 
 
-def _load_bases(cache_path, n_coefficients):
+def load_bases(cache_path, n_coefficients):
+    """Frame and clusters saved by ``prepare_bases``: (centre (3,), phi, specs, bases (n_c, K))."""
     data = np.load(cache_path)
     n = len([k for k in data.files if k.startswith("members_")])
     specs = [ClusterSpec(i, int(data[f"seed_{i}"]), 0, data[f"members_{i}"]) for i in range(n)]
@@ -86,7 +87,7 @@ def trial(model_path, cache_path, params, detect_params, chain_text, method, see
     t0 = time.perf_counter()
     cloud = read_points(model_path)
     points = cloud.points
-    centre, phi, specs, bases = _load_bases(cache_path, params.n_coefficients)
+    centre, phi, specs, bases = load_bases(cache_path, params.n_coefficients)
     bits = _message_bits(params)
     marked = embed_with_bases(points - centre, specs, bases, material, bits, params, phi) + centre
     t1 = time.perf_counter()
@@ -122,7 +123,7 @@ def false_positives(model_path, cache_path, params, detect_params, material, n_k
     estimated once per suspect and decoded with every wrong key.
     """
     points = read_points(model_path).points
-    centre, phi, specs, bases = _load_bases(cache_path, params.n_coefficients)
+    centre, phi, specs, bases = load_bases(cache_path, params.n_coefficients)
     bits = _message_bits(params)
     suspects = {"unmarked original": points}
     if marked_too:

@@ -24,7 +24,7 @@ import numpy as np
 import pyarrow as pa
 
 from . import __version__, config as config_mod
-from .evaluate import _cache_name, _load_bases, prepare_bases
+from .evaluate import _cache_name, load_bases, prepare_bases
 from .io.catalog import discover_assets, read_catalogue
 from .io.manifest import EMBED_SCHEMA, read_dataset, read_rows, write_rows
 from .io.pointcloud import read_points, sha256_file
@@ -95,7 +95,7 @@ def check_candidate(suspect_path, original_path, cache_path, issued, materials, 
     params = params_from_row(issued[0])
     suspect = read_points(suspect_path).points
     original = read_points(original_path).points
-    centre, _, specs, bases = _load_bases(cache_path, params.n_coefficients)
+    centre, _, specs, bases = load_bases(cache_path, params.n_coefficients)
     estimate = estimate_differences(suspect - centre, original - centre, specs, bases, detect_params)
     t0 = time.perf_counter()
     best = None

@@ -14,7 +14,11 @@ import numpy as np
 __all__ = ["d2_descriptor", "descriptor_distance", "D2_BINS"]
 
 D2_BINS = 32
-_PAIRS = 60000
+# Pairs drawn: the histogram's sampling noise must stay below the differences
+# between similar assets (with 60,000 pairs, a copy under 0.5 % noise ranked
+# its own asset outside the top 3 among 50 procedural shapes of 4 families
+# in 7 of 25 cases; with 500,000, in none).
+_PAIRS = 500000
 _RANGE = 3.0   # histogram covers [0, 3 x median distance]
 
 

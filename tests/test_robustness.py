@@ -1,0 +1,90 @@
+"""Robustness beyond the paper (issue 7) on three real scans.
+
+Each case runs one trial of the evaluation (``pipeline.evaluate.trial``, the
+code behind the report's rows): embed with the paper's defaults (beta 0.002,
+c 10, 32 bits), attack, shuffle, detect with the robust method.  The bunny
+uses the paper's 5 clusters of 4,000 points; the smaller scans 2 of them.
+"""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from pipeline import config, evaluate
+from pipeline.io.pointcloud import read_points
+from pipeline.kernels import keys
+from pipeline.watermark import decode, estimate_differences
+from tests.conftest import ROOT
+
+pytestmark = pytest.mark.slow
+PAPER = config.load_config(ROOT / "configs" / "paper.yaml")
+MODELS = {
+    "bunny_zipper_faceref_34834": {},
+    "kitten_12623": {"n_clusters": 2},
+    "nikolov_owl_12442": {"n_clusters": 2},
+}
+# attacks the paper lost or did not try, all with 0 bit errors here
+EXACT = ["removal:0.1", "resample:5000", "similarity+removal:0.139", "resample:10000+random_similarity"]
+MATERIAL = keys.derive_key_material(b"robustness-test-secret", "robustness")
+
+
+@pytest.fixture(scope="module")
+def prepared(shared_data, tmp_path_factory):
+    """(model path, bases cache, parameters) per model, bases computed once."""
+    folder = tmp_path_factory.mktemp("bases")
+    out = {}
+    for name, overrides in {**MODELS, "bun_zipper": {}}.items():
+        sub = "meshes" if name == "bun_zipper" else "models"
+        path = shared_data / sub / f"{name}.ply"
+        params = replace(config.watermark_params(PAPER), **overrides)
+        out[name] = (str(path), evaluate.prepare_bases(path, params, folder / f"{name}.npz"), params)
+    return out
+
+
+def _trial(prepared, model, attack, seed=7):
+    path, cache, params = prepared[model]
+    return evaluate.trial(path, cache, params, config.detect_params(PAPER), attack, "robust", seed, MATERIAL)
+
+
+@pytest.mark.parametrize("attack", EXACT)
+@pytest.mark.parametrize("model", list(MODELS))
+def test_zero_bit_errors_after(model, attack, prepared):
+    row = _trial(prepared, model, attack)
+    assert row["bit_errors"] == 0, row
+    assert row["detected"] and row["p_value"] < 1e-6
+
+
+@pytest.mark.parametrize("model", list(MODELS))
+def test_crop_keeping_30_percent_keeps_95_percent_of_bits(model, prepared):
+    row = _trial(prepared, model, "crop:0.3")
+    assert 1 - row["ber"] >= 0.95, row
+    assert row["detected"]
+
+
+def test_mesh_simplification_to_5000_vertices(prepared):
+    row = _trial(prepared, "bun_zipper", "simplify:5000")
+    assert abs(row["n_suspect"] - 5000) <= 100   # quadric decimation lands near its target
+    assert row["bit_errors"] == 0, row
+
+
+def test_noise_of_one_percent_is_still_detected_on_the_bunny(prepared):
+    # The issue's target is 0 errors; measured here: a few bits of 32 lost in
+    # some seeds (see the closing note).  What holds and is guarded: the mark
+    # is found and the bit error rate stays low.
+    row = _trial(prepared, "bunny_zipper_faceref_34834", "noise:1%")
+    assert row["detected"] and row["ber"] <= 0.1, row
+
+
+@pytest.mark.parametrize("model", list(MODELS))
+def test_unmarked_original_and_wrong_key_are_not_watermarked(model, prepared):
+    path, cache, params = prepared[model]
+    centre, _, specs, bases = evaluate.load_bases(cache, params.n_coefficients)
+    points = read_points(path).points - centre
+    dparams = config.detect_params(PAPER)
+    estimate = estimate_differences(points[np.random.default_rng(3).permutation(len(points))], points,
+                                    specs, bases, dparams)
+    for secret in (b"robustness-test-secret", b"another-secret"):
+        material = keys.derive_key_material(secret, "robustness")
+        result = decode(estimate, specs, material, params, dparams)
+        assert not result["detected"] and result["p_value"] > 1e-4
