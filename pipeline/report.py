@@ -103,8 +103,8 @@ def plot_attacks(rows, path):
     axes[-1, 0].set_xlim(0, 0.75)
     axes[-1, 0].set_xlabel("bit error rate (fraction of payload bits wrong, mean over runs; 0 = intact)")
     fig.suptitle("Bit error rate per attack: the paper's detection against the robust one")
-    handles, names = axes[0, 0].get_legend_handles_labels()
-    fig.legend(handles, names, loc="upper center", ncol=len(methods), fontsize=8,
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="upper center", ncol=len(methods), fontsize=8,
                bbox_to_anchor=(0.5, 1 - 0.45 / fig.get_figheight()))
     fig.tight_layout(rect=(0, 0, 1, 1 - 0.7 / fig.get_figheight()))
     fig.savefig(path, dpi=110)

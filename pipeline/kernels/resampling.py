@@ -129,7 +129,10 @@ def fit_spectral_displacement(original, normals, suspect, clusters, bases, *,
         cut = 4.0 * float(np.median(spacing))
     deltas = [np.zeros((e.shape[1], 3)) for e in bases]
     support = [0] * len(clusters)
-    use_ratio = None
+    owner = np.full(len(original), -1, dtype=np.int64)   # cluster of each original point
+    for c, members in enumerate(clusters):
+        owner[members] = c
+    use_ratio = None                                      # decided on the first matches
     for _ in range(iterations):
         deformed = original.copy()
         for members, basis, delta in zip(clusters, bases, deltas):
@@ -140,9 +143,6 @@ def fit_spectral_displacement(original, normals, suspect, clusters, bases, *,
         if use_ratio is None:
             noise = normal_noise(suspect[near], original[nearest[near]], normals[nearest[near]])
             use_ratio = noise < gate_switch * float(np.median(spacing))
-        owner = np.full(len(original), -1, dtype=np.int64)
-        for c, members in enumerate(clusters):
-            owner[members] = c
         for c, (members, basis) in enumerate(zip(clusters, bases)):
             pick = near & (owner[nearest] == c)
             support[c] = int(pick.sum())
