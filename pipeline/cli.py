@@ -160,7 +160,8 @@ def cmd_embed(args):
         f"wrote {args.output}: {result['n_points']} points, {len(clusters)} clusters, "
         f"{params.n_bits} bits",
         f"distortion: RMSE {100 * d['rmse_rel_diag']:.4f} % of diag, "
-        f"Hausdorff {100 * d['hausdorff_rel_diag']:.4f} % of diag",
+        f"Hausdorff {100 * d['hausdorff_rel_diag']:.4f} %, "
+        f"to the surface {100 * d['surface_rmse_rel_diag']:.4f} %",
     ])
     return 0
 

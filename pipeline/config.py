@@ -71,6 +71,9 @@ WATERMARK = _section("Embedding parameters (paper, section 2.2).", {
                       "Chips of a bit on consecutive coefficients (paper) or spread by the key."),
     "first_coefficient": _p("integer", 0, "Index of the first modulated coefficient.", minimum=0),
     "crc_bits": _p("integer", 0, "CRC bits appended to the payload (0, 8 or 16).", enum=[0, 8, 16]),
+    "displacement": _p(["xyz", "normal"], "xyz",
+                       "xyz: the paper's displacement; normal: its part along the normals, at the "
+                       "same RMSE and peak."),
 })
 
 DETECTION = _section("Detection (paper, section 2.2, Extraction).", {
@@ -125,13 +128,18 @@ WORKFLOW = _section("Settings read only by the Snakefile.", {
     "stamps": _p("string", "out/stamps", "Folder of the rules' completion files and logs."),
 })
 
+_METHODS = {
+    "description": "Method variants: paper (xyz displacement, covariance registration, nearest-point "
+                   "resampling), robust (the config's watermark and detection sections) and "
+                   "robust-xyz (robust detection of the paper's xyz displacement).",
+    "type": "array", "items": {"enum": ["paper", "robust-xyz", "robust"]}, "minItems": 1,
+    "default": ["paper", "robust"],
+}
+
 EVALUATE = _section("The robustness evaluation (pointmark evaluate).", {
     "out": _p("string", "out/evaluate", "Folder of results.parquet, the plots and summary.md."),
     "repetitions": _p("integer", 1, "Seeds per (model, attack, parameters, method).", minimum=1),
-    "methods": {"description": "Detection variants: paper (covariance registration, nearest-point "
-                               "resampling) and robust (the config's detection section).",
-                "type": "array", "items": {"enum": ["paper", "robust"]}, "minItems": 1,
-                "default": ["paper", "robust"]},
+    "methods": _METHODS,
     "experiments": {
         "description": "Each: models, attack chains ('+' joins steps, e.g. similarity+removal:0.139), "
                        "parameter sets (watermark overrides), and an optional mesh for simplify.",
@@ -143,6 +151,7 @@ EVALUATE = _section("The robustness evaluation (pointmark evaluate).", {
                       "attacks": {"type": "array", "items": {"type": "string"}, "minItems": 1},
                       "parameters": {"type": "array", "items": {"type": "object"}, "default": [{}]},
                       "repetitions": {"type": "integer", "minimum": 1},
+                      "methods": _METHODS,
                   }},
     },
     "false_positive_keys": _p("integer", 1000, "Wrong keys tried on each model (0: skip).", minimum=0),

@@ -39,10 +39,20 @@ def parse_chain(text):
     return [parse_attack(step) for step in text.split("+")]
 
 
-def _method_params(method, base):
+def method_params(method, params, detect_params):
+    """(WatermarkParams, DetectParams) of an evaluation method.
+
+    ``paper``: the paper's embedding (xyz displacement, consecutive chips),
+    covariance registration and nearest-point resampling; ``robust``: the
+    config as given; ``robust-xyz``: the config's detection on the paper's
+    embedding.
+    """
+    if method == "robust":
+        return params, detect_params
+    paper_embedding = replace(params, displacement="xyz", chip_layout="consecutive")
     if method == "paper":
-        return replace(base, registration="paper", correspondence="paper")
-    return base
+        return paper_embedding, replace(detect_params, registration="paper", correspondence="paper")
+    return paper_embedding, detect_params
 
 
 def prepare_bases(model_path, params, cache_path):
@@ -89,13 +99,14 @@ def trial(model_path, cache_path, params, detect_params, chain_text, method, see
     points = cloud.points
     centre, phi, specs, bases = load_bases(cache_path, params.n_coefficients)
     bits = _message_bits(params)
+    params, dparams = method_params(method, params, detect_params)
     marked = embed_with_bases(points - centre, specs, bases, material, bits, params, phi) + centre
     t1 = time.perf_counter()
     chain = parse_chain(chain_text)
     attacked = apply_chain(marked, chain + [("shuffle", None)], rng=seed, faces=cloud.faces())
     t2 = time.perf_counter()
-    dparams = _method_params(method, detect_params)
-    estimate = estimate_differences(attacked - centre, points - centre, specs, bases, dparams)
+    estimate = estimate_differences(attacked - centre, points - centre, specs, bases, dparams,
+                                    params.displacement)
     result = decode(estimate, specs, material, params, dparams)
     errors = int((np.asarray(result["bits"]) != bits).sum())
     dist = distortion(points, marked)
@@ -106,7 +117,8 @@ def trial(model_path, cache_path, params, detect_params, chain_text, method, see
         "bit_errors": errors, "ber": errors / params.n_bits, "detected": result["detected"],
         "p_value": result["p_value"], "min_abs_score": float(np.min(np.abs(result["bit_scores"]))),
         "registration_fitness": result["registration"]["fitness"],
-        "rmse_rel_diag": dist["rmse_rel_diag"], "hausdorff_rel_diag": dist["hausdorff_rel_diag"],
+        "displacement": params.displacement, "rmse_rel_diag": dist["rmse_rel_diag"],
+        "hausdorff_rel_diag": dist["hausdorff_rel_diag"], "surface_rmse_rel_diag": dist["surface_rmse_rel_diag"],
         "seconds_embed": t1 - t0, "seconds_attack": t2 - t1, "seconds_detect": time.perf_counter() - t2,
     }
 
@@ -131,7 +143,8 @@ def false_positives(model_path, cache_path, params, detect_params, material, n_k
                                                                params, phi) + centre
     rows = []
     for label, suspect in suspects.items():
-        estimate = estimate_differences(suspect - centre, points - centre, specs, bases, detect_params)
+        estimate = estimate_differences(suspect - centre, points - centre, specs, bases, detect_params,
+                                        params.displacement)
         for k in range(n_keys):
             wrong = keys.derive_key_material(b"evaluation-wrong-keys", f"wrong-{k}")
             res = decode(estimate, specs, wrong, params, detect_params)
@@ -161,7 +174,7 @@ def plan_trials(cfg):
                 params = replace(base, **overrides)
                 for chain in exp["attacks"]:
                     parse_chain(chain)  # fail early on a typo
-                    for method in ev["methods"]:
+                    for method in exp.get("methods") or ev["methods"]:
                         for rep in range(reps):
                             out.append((exp["name"], model, params, chain, method, 1000 * rep + 17))
     return out

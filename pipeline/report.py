@@ -26,6 +26,7 @@ PAPER_SAYS = {
 
 # the experiment whose rows make the Figure-8 curves; every other one is an attack table
 NOISE_CURVE = "noise_curve"
+METHOD_ORDER = ("paper", "robust-xyz", "robust")
 
 
 def _plt():
@@ -48,7 +49,7 @@ def plot_noise_curves(rows, path):
     """BER against noise amplitude, one line per (beta, c), one panel per method (Figure 8)."""
     plt = _plt()
     noise = [r for r in rows if r["experiment"] == NOISE_CURVE]
-    methods = sorted({r["method"] for r in noise})
+    methods = [m for m in METHOD_ORDER if m in {r["method"] for r in noise}]
     if not noise:
         return None
     fig, axes = plt.subplots(1, len(methods), figsize=(6 * len(methods), 4.5), squeeze=False, sharey=True)
@@ -59,7 +60,7 @@ def plot_noise_curves(rows, path):
             x = sorted(k[0] for k in pts)
             y = [np.mean([r["ber"] for r in pts[(v,)]]) for v in x]
             ax.plot(100 * np.array(x), y, marker="o", label=f"beta = {beta}, c = {c}")
-        ax.set_title(f"detection: {method}")
+        ax.set_title(f"method: {method}")
         ax.set_xlabel("noise amplitude (% of largest bbox side)")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
@@ -76,7 +77,7 @@ def plot_attacks(rows, path):
     plt = _plt()
     table = _group([r for r in rows if r["experiment"] != NOISE_CURVE], ("model", "attack", "method"))
     models = sorted({k[0] for k in table})
-    methods = sorted({k[2] for k in table})
+    methods = [m for m in METHOD_ORDER if m in {k[2] for k in table}]
     if not models:
         return None
     attacks = {m: sorted({a for mm, a, _ in table if mm == m}) for m in models}
@@ -91,7 +92,7 @@ def plot_attacks(rows, path):
             y = np.arange(len(names)) + (i - (len(methods) - 1) / 2) * height
             ber = [np.mean([r["ber"] for r in table.get((model, a, method), [])] or [np.nan])
                    for a in names]
-            ax.barh(y, ber, height, color=f"C{i}", label=f"detection: {method}")
+            ax.barh(y, ber, height, color=f"C{i}", label=f"method: {method}")
             for yy, b in zip(y, ber):   # print the value, so that a zero is visible too
                 if np.isfinite(b):
                     ax.text(b + 0.005, yy, f"{b:.3g}", va="center", fontsize=7)
@@ -150,18 +151,21 @@ def write_report(folder, rows, fp_rows, p_threshold, seconds):
              f"{len(rows)} trials in {seconds:.0f} s. BER = bit errors / payload bits; every attacked "
              "copy was shuffled before detection.", ""]
     attack_rows = []
+    present = {r["method"] for r in rows}
+    methods = [m for m in METHOD_ORDER if m in present]
     for (exp, model, attack), rs in sorted(_group([r for r in rows if r["experiment"] != NOISE_CURVE],
                                                   ("experiment", "model", "attack")).items()):
         by = _group(rs, ("method",))
         cells = []
-        for method in ("paper", "robust"):
+        for method in methods:
             m = by.get((method,), [])
             cells.append("-" if not m else f"{np.mean([r['ber'] for r in m]):.3f} "
                          f"({sum(r['bit_errors'] == 0 for r in m)}/{len(m)} exact)")
         attack_rows.append([exp, model, attack, *cells, PAPER_SAYS.get(attack, "")])
     if attack_rows:
-        lines += ["## Attacks", "", _md_table(["experiment", "model", "attack", "BER, paper method",
-                                              "BER, robust method", "the paper reports"], attack_rows), ""]
+        lines += ["## Attacks", "", _md_table(["experiment", "model", "attack",
+                                              *[f"BER, {m}" for m in methods], "the paper reports"],
+                                             attack_rows), ""]
     noise = [r for r in rows if r["experiment"] == NOISE_CURVE]
     if noise:
         curve = []
@@ -169,11 +173,15 @@ def write_report(folder, rows, fp_rows, p_threshold, seconds):
             curve.append([method, beta, c, f"{100 * s:.2f} %", f"{np.mean([r['ber'] for r in rs]):.3f}", len(rs)])
         lines += ["## BER against noise (Figure 8)", "",
                   _md_table(["method", "beta", "c", "noise", "mean BER", "runs"], curve), ""]
-    dist = _group(rows, ("model", "beta", "chip_rate"))
-    lines += ["## Distortion", "", _md_table(
-        ["model", "beta", "c", "RMSE (% diag)", "Hausdorff (% diag)"],
-        [[m, b, c, f"{100 * np.mean([r['rmse_rel_diag'] for r in rs]):.4f}",
-          f"{100 * np.mean([r['hausdorff_rel_diag'] for r in rs]):.4f}"] for (m, b, c), rs in sorted(dist.items())]), ""]
+    dist = _group(rows, ("model", "n_clusters", "beta", "chip_rate", "displacement"))
+    lines += ["## Distortion", "",
+              "RMSE and Hausdorff as in ROBUSTNESS.md; surface RMS: distance of the marked points to "
+              "the tangent planes of the original (the motion across the surface).", "", _md_table(
+                  ["model", "clusters", "beta", "c", "displacement", "RMSE (% diag)", "Hausdorff (% diag)",
+                   "surface RMS (% diag)"],
+                  [[*key, *[f"{100 * np.mean([r[k] for r in rs]):.4f}"
+                            for k in ("rmse_rel_diag", "hausdorff_rel_diag", "surface_rmse_rel_diag")]]
+                   for key, rs in sorted(dist.items())]), ""]
     if fp_rows:
         fp = []
         for (label,), rs in sorted(_group(fp_rows, ("suspect",)).items()):

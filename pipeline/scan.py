@@ -72,7 +72,9 @@ def params_from_row(row):
     """WatermarkParams as recorded in an embedding manifest row."""
     seeds = json.loads(row["seeds_json"]) if row.get("seeds_json") else None
     seeds = None if seeds is None else tuple(tuple(s) if isinstance(s, list) else s for s in seeds)
-    return WatermarkParams(**{k: row[k] for k in _PARAM_FIELDS}, seeds=seeds)
+    # manifests written before the normal-direction option hold the paper's xyz
+    displacement = row.get("displacement") or "xyz"
+    return WatermarkParams(**{k: row[k] for k in _PARAM_FIELDS}, seeds=seeds, displacement=displacement)
 
 
 def triage(suspect_path, descriptors, issued_by_sha, top_k):
@@ -96,7 +98,8 @@ def check_candidate(suspect_path, original_path, cache_path, issued, materials, 
     suspect = read_points(suspect_path).points
     original = read_points(original_path).points
     centre, _, specs, bases = load_bases(cache_path, params.n_coefficients)
-    estimate = estimate_differences(suspect - centre, original - centre, specs, bases, detect_params)
+    estimate = estimate_differences(suspect - centre, original - centre, specs, bases, detect_params,
+                                    params.displacement)
     t0 = time.perf_counter()
     best = None
     for key_id in sorted({r["key_id"] for r in issued}):

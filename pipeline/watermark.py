@@ -9,7 +9,7 @@ produce the same bytes.
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -18,8 +18,8 @@ from .kernels import clustering, graph, keys, modulation, registration, resampli
 
 __all__ = [
     "WatermarkParams", "DetectParams", "Frame", "ClusterSpec", "frame_of", "plan_clusters",
-    "cluster_basis", "modulate_cluster", "embed", "embed_with_bases", "detect", "detect_with_bases",
-    "estimate_differences", "decode", "distortion", "WatermarkError",
+    "cluster_basis", "cluster_normals", "modulate_cluster", "embed", "embed_with_bases", "detect",
+    "detect_with_bases", "estimate_differences", "decode", "distortion", "WatermarkError",
 ]
 
 
@@ -43,6 +43,7 @@ class WatermarkParams:
     chip_layout: str = "consecutive"  # "consecutive" (paper) or "interleaved"
     first_coefficient: int = 0        # index of the first modulated coefficient
     crc_bits: int = 0                 # 0 (paper), 8 or 16
+    displacement: str = "xyz"         # "xyz" (paper) or "normal": the same RMSE, along the normals
 
     @property
     def total_bits(self):
@@ -208,7 +209,7 @@ def payload_bits(message_bits, params):
     return np.concatenate([message_bits, modulation.crc_bits(message_bits, params.crc_bits)])
 
 
-def modulate_cluster(basis, cluster_index, material, bits, amplitude, params):
+def modulate_cluster(basis, cluster_index, material, bits, amplitude, params, normals=None):
     """Displacement of one cluster's points from its basis (eq. 2-4 and the synthesis).
 
     Parameters
@@ -221,6 +222,9 @@ def modulate_cluster(basis, cluster_index, material, bits, amplitude, params):
     amplitude : float
         alpha.
     params : WatermarkParams
+    normals : (n_c, 3) float, optional
+        Unit normals of the cluster's points; needed when
+        ``params.displacement == "normal"``.
 
     Returns
     -------
@@ -228,7 +232,26 @@ def modulate_cluster(basis, cluster_index, material, bits, amplitude, params):
     """
     delta = modulation.spread(bits, params.chip_rate, sequences(material, cluster_index, params),
                               amplitude, chip_positions(material, cluster_index, params))
-    return basis[:, : len(delta)] @ delta
+    moved = basis[:, : len(delta)] @ delta
+    if params.displacement == "xyz":
+        return moved
+    # Only the motion along the normals, at the paper's RMS (the layout does
+    # not change it), and no point moves farther than the paper's embedding
+    # of this payload would have moved one.
+    paper = modulate_cluster(basis, cluster_index, material, bits, amplitude,
+                             replace(params, displacement="xyz", chip_layout="consecutive"))
+    moved, _ = modulation.along_normals(moved, normals, cap=float(np.sqrt((paper**2).sum(axis=1).max())))
+    return moved
+
+
+def cluster_normals(centred, members, params):
+    """Normals of a cluster's points when the displacement needs them, else None.
+
+    Neighbours come from the whole model, so every process gets the same normals.
+    """
+    if params.displacement != "normal":
+        return None
+    return resampling.estimate_normals(centred, at=members)
 
 
 def embed(points, material, message_bits, params):
@@ -259,13 +282,18 @@ def embed_with_bases(centred, specs, bases, material, message_bits, params, phi)
     bits = payload_bits(message_bits, params)
     moved = centred.copy()
     for spec, basis in zip(specs, bases):
-        moved[spec.members] += modulate_cluster(basis, spec.index, material, bits,
-                                                params.beta * phi, params)
+        moved[spec.members] += modulate_cluster(basis, spec.index, material, bits, params.beta * phi, params,
+                                                cluster_normals(centred, spec.members, params))
     return moved
 
 
 def distortion(original, watermarked):
-    """RMSE (same order) and symmetric Hausdorff distance, relative to the bbox diagonal.
+    """Distortion metrics relative to the bbox diagonal.
+
+    RMSE of the point displacements (same order) and the symmetric Hausdorff
+    distance of ROBUSTNESS.md, plus the RMS distance of each watermarked point
+    to the tangent plane of its nearest original point: the part of the motion
+    that changes the surface rather than its sampling.
 
     Parameters
     ----------
@@ -273,13 +301,16 @@ def distortion(original, watermarked):
 
     Returns
     -------
-    dict with rmse_rel_diag, hausdorff_rel_diag
+    dict with rmse_rel_diag, hausdorff_rel_diag, surface_rmse_rel_diag
     """
     diag = float(np.linalg.norm(original.max(axis=0) - original.min(axis=0)))
     rmse = float(np.sqrt(((watermarked - original) ** 2).sum(axis=1).mean()))
-    d1, _ = cKDTree(original).query(watermarked)
+    d1, nearest = cKDTree(original).query(watermarked)
     d2, _ = cKDTree(watermarked).query(original)
-    return {"rmse_rel_diag": rmse / diag, "hausdorff_rel_diag": float(max(d1.max(), d2.max())) / diag}
+    normals = resampling.estimate_normals(original, at=nearest)
+    plane = np.einsum("ni,ni->n", watermarked - original[nearest], normals)
+    return {"rmse_rel_diag": rmse / diag, "hausdorff_rel_diag": float(max(d1.max(), d2.max())) / diag,
+            "surface_rmse_rel_diag": float(np.sqrt((plane**2).mean())) / diag}
 
 
 def detect(suspect, original, material, params, detect_params):
@@ -312,12 +343,14 @@ def detect_with_bases(suspect, reference, specs, bases, material, params, detect
 
     ``suspect`` and ``reference`` are in the original's working frame.
     """
-    estimate = estimate_differences(suspect, reference, specs, bases, detect_params)
+    estimate = estimate_differences(suspect, reference, specs, bases, detect_params, params.displacement)
     return decode(estimate, specs, material, params, detect_params)
 
 
-def estimate_differences(suspect, reference, specs, bases, detect_params):
+def estimate_differences(suspect, reference, specs, bases, detect_params, displacement="xyz"):
     """Register the suspect and estimate every cluster's r-hat - r (independent of the key).
+
+    ``displacement`` is the embedding's (``WatermarkParams.displacement``).
 
     Returns
     -------
@@ -328,7 +361,7 @@ def estimate_differences(suspect, reference, specs, bases, detect_params):
     transform = _register(suspect, reference, spacing, detect_params.registration)
     aligned = registration.apply(transform, suspect)
     t1 = time.perf_counter()
-    deltas, support = _coefficient_differences(aligned, reference, specs, bases, detect_params)
+    deltas, support = _coefficient_differences(aligned, reference, specs, bases, detect_params, displacement)
     return {
         "seconds_registration": t1 - t0,
         "seconds_estimate": time.perf_counter() - t1,
@@ -351,7 +384,8 @@ def decode(estimate, specs, material, params, detect_params):
                                         chip_positions(material, spec.index, params))
         qs.append(q)
         energies.append(energy)
-    z = modulation.combine_scores(np.array(qs), np.array(energies))
+    coverage = [n / max(len(s.members), 1) for s, n in zip(specs, estimate["support"])]
+    z = modulation.combine_scores(np.array(qs), np.array(energies), coverage=coverage)
     bits = (z > 0).astype(np.uint8)
     message = bits[: params.n_bits]
     crc_ok = None
@@ -382,7 +416,7 @@ def _register(suspect, reference, spacing, method):
     return registration.register_robust(suspect, reference, spacing=spacing)
 
 
-def _coefficient_differences(aligned, reference, specs, bases, detect_params):
+def _coefficient_differences(aligned, reference, specs, bases, detect_params, displacement):
     if detect_params.correspondence == "paper":
         resampled, _ = resampling.snap_to_original(reference, aligned)
         deltas = [e.T @ (resampled[s.members] - reference[s.members]) for s, e in zip(specs, bases)]
@@ -393,7 +427,7 @@ def _coefficient_differences(aligned, reference, specs, bases, detect_params):
         reference, normals, aligned, [s.members for s in specs], bases,
         iterations=detect_params.iterations, ridge=detect_params.ridge,
         tangential_gate=detect_params.tangential_gate, ratio_gate=detect_params.ratio_gate,
-        gate_switch=detect_params.gate_switch,
+        gate_switch=detect_params.gate_switch, normal_only=displacement == "normal",
     )
 
 

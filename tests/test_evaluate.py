@@ -29,4 +29,7 @@ def test_small_evaluation_writes_results_plots_and_summary(shared_data, tmp_path
     for name in ("attacks.png", "noise_curves.png", "false_positives.png", "summary.md"):
         assert (tmp_path / name).stat().st_size > 1000
     text = (tmp_path / "summary.md").read_text()
-    assert "## False positives" in text and "BER, robust method" in text
+    assert "## False positives" in text and "| BER, paper | BER, robust |" in text
+    assert "surface RMS" in text
+    # the paper's method embeds in xyz, the robust one along the normals
+    assert {(r["method"], r["displacement"]) for r in rows} == {("paper", "xyz"), ("robust", "normal")}

@@ -10,6 +10,10 @@ The "layout" maps chip i to a coefficient: ``consecutive`` is the paper's
 (chips of bit j on coefficients j*c ... (j+1)*c - 1); ``interleaved`` spreads
 each bit over the whole band with a key-dependent permutation, so no bit sits
 only on the noisiest or the most registration-sensitive frequencies.
+
+:func:`along_normals` is the optional normal-direction synthesis: only the
+part of a displacement across the surface survives resampling and noise, so
+it keeps that part, scaled back to the paper's RMS and capped at its peak.
 """
 
 from __future__ import annotations
@@ -19,7 +23,7 @@ from scipy import special
 
 __all__ = [
     "hex_to_bits", "bits_to_hex", "crc_bits", "chips", "spread", "despread",
-    "combine_scores", "p_value_present", "p_value_payload",
+    "combine_scores", "p_value_present", "p_value_payload", "along_normals",
 ]
 
 _CRC_POLYS = {8: 0x07, 16: 0x1021}
@@ -145,7 +149,7 @@ def despread(delta, chip_rate, sequences, positions):
     return q, energy
 
 
-def combine_scores(q, energy, weights=None):
+def combine_scores(q, energy, weights=None, coverage=None):
     """Soft combination of the clusters' correlators into one z-score per bit.
 
     Parameters
@@ -153,8 +157,12 @@ def combine_scores(q, energy, weights=None):
     q : (k, m) float
     energy : (k, m) float
     weights : (k,) float, optional
-        Cluster weights chosen without the key (default: inverse mean energy,
-        so clusters measured with less noise count more).
+        Cluster weights chosen without the key (default: coverage over mean
+        energy, so clusters measured with less noise count more).
+    coverage : (k,) float in [0, 1], optional
+        Fraction of each cluster the suspect covers (default 1).  A cluster
+        with a handful of suspect points has a small, shrunken estimate whose
+        inverse energy alone would give it the largest weight.
 
     Returns
     -------
@@ -166,6 +174,8 @@ def combine_scores(q, energy, weights=None):
     if weights is None:
         mean_energy = energy.mean(axis=1)
         weights = np.where(mean_energy > 0, 1.0 / np.maximum(mean_energy, 1e-300), 0.0)
+        if coverage is not None:
+            weights = weights * np.clip(np.asarray(coverage, dtype=np.float64), 0.0, 1.0)
     num = 3.0 * (weights[:, None] * q).sum(axis=0)
     den = np.sqrt((weights[:, None] ** 2 * energy).sum(axis=0))
     return np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
@@ -188,3 +198,46 @@ def p_value_payload(z, bits):
     """
     signs = 2.0 * np.asarray(bits, dtype=np.float64) - 1.0
     return float(0.5 * special.erfc(float(z @ signs) / np.sqrt(2.0 * len(z))))  # normal survival
+
+
+def along_normals(displacement, normals, cap=None, iterations=60):
+    """Normal-direction version of a displacement, at the same RMS and peak.
+
+    Each point keeps only its displacement along its normal, h_i = n_i . d_i.
+    That part is scaled by one factor gamma and clipped at ``cap`` (default:
+    the input's largest displacement), with gamma chosen so that the RMS is the
+    input's.  So the RMSE is unchanged and no point moves farther than the cap,
+    while all of the motion is across the surface, where a resampled or noisy
+    copy still shows it.
+
+    Parameters
+    ----------
+    displacement : (n, 3) float
+    normals : (n, 3) float, unit (either orientation)
+    cap : float, optional
+        Largest displacement of the result.
+    iterations : int
+        Bisection steps for gamma (60 reach float precision).
+
+    Returns
+    -------
+    moved : (n, 3) float
+    gamma : float
+        The scale (about sqrt(3) when the displacement directions are random).
+    """
+    h = np.einsum("ni,ni->n", displacement, normals)
+    size = np.abs(h)
+    if cap is None:
+        cap = float(np.sqrt((displacement**2).sum(axis=1).max()))
+    target = float((displacement**2).sum(axis=1).mean())
+    if target == 0.0 or not size.any():
+        return np.zeros_like(displacement), 1.0
+    lo, hi = 0.0, cap / float(size[size > 0].min())   # at hi every point sits at the cap
+    for _ in range(iterations):
+        mid = 0.5 * (lo + hi)
+        if float((np.minimum(mid * size, cap) ** 2).mean()) < target:
+            lo = mid
+        else:
+            hi = mid
+    gamma = 0.5 * (lo + hi)
+    return (np.sign(h) * np.minimum(gamma * size, cap))[:, None] * normals, gamma

@@ -45,7 +45,7 @@ def nearest_spacing(points):
     return dist[:, 1]
 
 
-def estimate_normals(points, k=16):
+def estimate_normals(points, k=16, at=None):
     """Unoriented normals by local principal component analysis.
 
     Parameters
@@ -53,13 +53,16 @@ def estimate_normals(points, k=16):
     points : (n, 3) float
     k : int
         Neighbourhood size.
+    at : (l,) int, optional
+        Only the normals of these points (their neighbours are still taken
+        from all of ``points``).
 
     Returns
     -------
-    (n, 3) float, unit rows
+    (n, 3) or (l, 3) float, unit rows
     """
     k = min(k, len(points))
-    _, idx = cKDTree(points).query(points, k=k)
+    _, idx = cKDTree(points).query(points if at is None else points[at], k=k)
     nbrs = points[idx]                                  # (n, k, 3)
     centred = nbrs - nbrs.mean(axis=1, keepdims=True)
     cov = np.einsum("nki,nkj->nij", centred, centred)   # (n, 3, 3)
@@ -91,7 +94,7 @@ def snap_to_original(original, suspect):
 
 def fit_spectral_displacement(original, normals, suspect, clusters, bases, *,
                               iterations=3, ridge=1e-3, cut=None, tangential_gate=0.25,
-                              ratio_gate=0.5, gate_switch=0.4):
+                              ratio_gate=0.5, gate_switch=0.4, normal_only=False):
     """Least-squares coefficient differences of every cluster.
 
     Parameters
@@ -116,6 +119,10 @@ def fit_spectral_displacement(original, normals, suspect, clusters, bases, *,
         its second-nearest (unambiguous); above it, only matches closer than
         ``tangential_gate`` times the local spacing.  ``gate_switch=0`` always
         uses the fixed gate, ``inf`` always the ratio.
+    normal_only : bool
+        The watermark moved points along their normals only (``along_normals``):
+        the model is then original + n n^T E X, fitted from the normal misfit
+        alone; the gates are not used.
 
     Returns
     -------
@@ -136,7 +143,10 @@ def fit_spectral_displacement(original, normals, suspect, clusters, bases, *,
     for _ in range(iterations):
         deformed = original.copy()
         for members, basis, delta in zip(clusters, bases, deltas):
-            deformed[members] += basis @ delta
+            moved = basis @ delta
+            if normal_only:
+                moved = np.einsum("ki,ki->k", moved, normals[members])[:, None] * normals[members]
+            deformed[members] += moved
         dist2, nearest2 = cKDTree(deformed).query(suspect, k=2)
         dist, nearest = dist2[:, 0], nearest2[:, 0]
         near = dist < cut
@@ -149,7 +159,9 @@ def fit_spectral_displacement(original, normals, suspect, clusters, bases, *,
             if support[c] == 0:
                 deltas[c] = np.zeros_like(deltas[c])
                 continue
-            if use_ratio:
+            if normal_only:
+                reliable = np.zeros(int(pick.sum()), dtype=bool)
+            elif use_ratio:
                 reliable = dist[pick] < ratio_gate * dist2[pick, 1]
             else:
                 reliable = dist[pick] < tangential_gate * spacing[nearest[pick]]

@@ -14,8 +14,8 @@ import numpy as np
 
 from .. import __version__
 from ..io.pointcloud import InputError, read_points, sha256_file, write_points
-from ..watermark import (WatermarkError, cluster_basis, distortion, frame_of, modulate_cluster,
-                         payload_bits, plan_clusters)
+from ..watermark import (WatermarkError, cluster_basis, cluster_normals, distortion, frame_of,
+                         modulate_cluster, payload_bits, plan_clusters)
 from ..kernels import modulation
 
 __all__ = ["AssetPlan", "plan_asset", "embed_cluster_task", "assemble_asset"]
@@ -63,12 +63,14 @@ def embed_cluster_task(plan, cluster_pos, material, payloads, params):
     t0 = time.perf_counter()
     _, points = _load(plan.path)
     spec = plan.clusters[cluster_pos]
-    cluster_points = (points - plan.centre)[spec.members]
-    radius, basis = cluster_basis(cluster_points, params)
+    centred = points - plan.centre
+    radius, basis = cluster_basis(centred[spec.members], params)
+    normals = cluster_normals(centred, spec.members, params)
     amplitude = params.beta * plan.phi
     disps = np.stack([
         modulate_cluster(basis, spec.index, material,
-                         payload_bits(modulation.hex_to_bits(p, params.n_bits), params), amplitude, params)
+                         payload_bits(modulation.hex_to_bits(p, params.n_bits), params), amplitude, params,
+                         normals)
         for p in payloads
     ])
     return radius, disps, time.perf_counter() - t0

@@ -72,3 +72,41 @@ def test_combined_scores_grow_with_clusters():
     z4 = mod.combine_scores(np.array(qs), np.array(es))
     assert np.abs(z4).mean() > 1.5 * np.abs(z1).mean()
     assert ((z4 > 0) == bits.astype(bool)).all()
+
+
+def test_along_normals_keeps_rmse_and_peak_and_moves_across_the_surface():
+    rng = np.random.default_rng(5)
+    displacement = rng.normal(size=(2000, 3))
+    normals = rng.normal(size=(2000, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    moved, gamma = mod.along_normals(displacement, normals)
+    rms = lambda d: np.sqrt((d**2).sum(axis=1).mean())   # noqa: E731
+    assert rms(moved) == pytest.approx(rms(displacement), rel=1e-9)
+    assert np.linalg.norm(moved, axis=1).max() <= np.linalg.norm(displacement, axis=1).max() * (1 + 1e-12)
+    assert np.allclose(np.cross(moved, normals), 0.0)           # parallel to the normals
+    # same side as the original normal component; random directions give gamma near sqrt(3)
+    h = np.einsum("ni,ni->n", displacement, normals)
+    assert (np.einsum("ni,ni->n", moved, normals) * h >= 0).all()
+    assert 1.5 < gamma < 2.0
+    # normals of either orientation give the same displacement
+    again, _ = mod.along_normals(displacement, -normals)
+    assert np.allclose(again, moved)
+
+
+def test_a_nearly_empty_cluster_does_not_outvote_the_covered_ones():
+    # Cluster 0 is seen whole; cluster 1 by a handful of points, so its
+    # estimate is tiny (low energy) and unrelated to the payload.  By inverse
+    # energy alone it would dominate; weighted by coverage it does not.
+    rng = np.random.default_rng(2)
+    m, c = 32, 10
+    bits = rng.integers(0, 2, m)
+    seq = rng.choice([-1.0, 1.0], size=(3, m * c))
+    pos = np.arange(m * c)
+    good = mod.spread(bits, c, seq, 1.0, pos) + rng.normal(0, 1.0, (m * c, 3))
+    junk = rng.normal(0, 0.1, (m * c, 3))          # energy 100 x lower, as measured on a crop
+    q, e = zip(*(mod.despread(d, c, seq, pos) for d in (good, junk)))
+    q, e = np.array(q), np.array(e)
+    unweighted = mod.combine_scores(q, e)
+    weighted = mod.combine_scores(q, e, coverage=[1.0, 6 / 4000])
+    assert ((weighted > 0) == bits.astype(bool)).all()
+    assert ((unweighted > 0) != bits.astype(bool)).sum() > 5

@@ -67,3 +67,29 @@ def test_spectral_fit_recovers_coefficients_from_fresh_samples():
         assert abs(np.corrcoef(estimate.ravel(), unrelated.ravel())[0, 1]) < 0.25
         chips = (estimate * np.sign(delta)).reshape(10, -1).sum(axis=1)
         assert (chips > 0).all()
+
+
+def test_normal_only_fit_recovers_a_normal_direction_watermark_from_fresh_samples():
+    # The watermark moved the original along its normals (along_normals); a
+    # fresh, denser sample of that surface shares no point with it.  The
+    # normal-only model fits it better than the xyz model, which also tries to
+    # explain motion along the surface that is not there.
+    from pipeline.kernels.modulation import along_normals
+
+    original = sphere_patch(3000, rng=0)
+    basis = _basis(original)
+    normals = estimate_normals(original)
+    rng = np.random.default_rng(4)
+    delta = rng.choice([-1.0, 1.0], size=(basis.shape[1], 3)) * 0.004
+    moved, _ = along_normals(basis @ delta, normals)
+    fresh = sphere_patch(12000, rng=7)
+    _, owner = cKDTree(original).query(fresh)
+    suspect = (fresh + moved[owner])[rng.permutation(len(fresh))]
+    score = {}
+    for normal_only in (False, True):
+        fit = [fit_spectral_displacement(original, normals, cloud, [np.arange(len(original))], [basis],
+                                         normal_only=normal_only)[0][0] for cloud in (suspect, fresh)]
+        estimate = fit[0] - fit[1]
+        score[normal_only] = np.corrcoef(estimate.ravel(), delta.ravel())[0, 1]
+    assert score[True] > 0.5
+    assert score[True] > score[False]
