@@ -73,7 +73,7 @@ def plot_noise_curves(rows, path):
 
 
 def plot_attacks(rows, path):
-    """Mean BER per attack chain, paper method against robust method, one panel per model."""
+    """Mean BER per attack chain, one bar per method, one panel per model."""
     plt = _plt()
     table = _group([r for r in rows if r["experiment"] != NOISE_CURVE], ("model", "attack", "method"))
     models = sorted({k[0] for k in table})
@@ -103,7 +103,7 @@ def plot_attacks(rows, path):
         ax.grid(axis="x", alpha=0.3)
     axes[-1, 0].set_xlim(0, 0.75)
     axes[-1, 0].set_xlabel("bit error rate (fraction of payload bits wrong, mean over runs; 0 = intact)")
-    fig.suptitle("Bit error rate per attack: the paper's detection against the robust one")
+    fig.suptitle("Bit error rate per attack: the paper's method against the robust one")
     handles, labels = axes[0, 0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="upper center", ncol=len(methods), fontsize=8,
                bbox_to_anchor=(0.5, 1 - 0.45 / fig.get_figheight()))
