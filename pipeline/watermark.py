@@ -238,8 +238,10 @@ def modulate_cluster(basis, cluster_index, material, bits, amplitude, params, no
     # Only the motion along the normals, at the paper's RMS (the layout does
     # not change it), and no point moves farther than the paper's embedding
     # of this payload would have moved one.
-    paper = modulate_cluster(basis, cluster_index, material, bits, amplitude,
-                             replace(params, displacement="xyz", chip_layout="consecutive"))
+    paper = moved
+    if params.chip_layout != "consecutive":
+        paper = modulate_cluster(basis, cluster_index, material, bits, amplitude,
+                                 replace(params, displacement="xyz", chip_layout="consecutive"))
     moved, _ = modulation.along_normals(moved, normals, cap=float(np.sqrt((paper**2).sum(axis=1).max())))
     return moved
 
@@ -347,7 +349,7 @@ def detect_with_bases(suspect, reference, specs, bases, material, params, detect
     return decode(estimate, specs, material, params, detect_params)
 
 
-def estimate_differences(suspect, reference, specs, bases, detect_params, displacement="xyz"):
+def estimate_differences(suspect, reference, specs, bases, detect_params, displacement):
     """Register the suspect and estimate every cluster's r-hat - r (independent of the key).
 
     ``displacement`` is the embedding's (``WatermarkParams.displacement``).

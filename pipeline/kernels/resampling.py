@@ -150,7 +150,7 @@ def fit_spectral_displacement(original, normals, suspect, clusters, bases, *,
         dist2, nearest2 = cKDTree(deformed).query(suspect, k=2)
         dist, nearest = dist2[:, 0], nearest2[:, 0]
         near = dist < cut
-        if use_ratio is None:
+        if use_ratio is None and not normal_only:
             noise = normal_noise(suspect[near], original[nearest[near]], normals[nearest[near]])
             use_ratio = noise < gate_switch * float(np.median(spacing))
         for c, (members, basis) in enumerate(zip(clusters, bases)):
