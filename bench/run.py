@@ -1,4 +1,4 @@
-"""pointmark benchmarks: ``make bench`` (or ``python bench/run.py [spectral] [catalog] [scan]``).
+"""pointmark benchmarks: ``make bench`` (or ``python bench/run.py [spectral] [catalog] [scan] [fingerprint] [issue]``).
 
 Every figure is a ratio of two timings taken side by side in this one run,
 since shared machines are noisy; each timing is the best of a few repeats.
@@ -96,7 +96,7 @@ def scan_bench(n_assets=50, n_suspects=100, n_points=5000):
     from pipeline.kernels import attacks
     from pipeline.orchestrate.progress import Progress
     from pipeline.orchestrate.run import plan_job, run_job
-    from pipeline.scan import read_scan, run_scan
+    from pipeline.orchestrate.scan import read_scan, run_scan
 
     work = ROOT / "bench" / "results" / "scan"
     shutil.rmtree(work / "scan", ignore_errors=True)
@@ -122,7 +122,7 @@ def scan_bench(n_assets=50, n_suspects=100, n_points=5000):
     run_scan(cfg, secret)
     wall = time.perf_counter() - t0
     found = read_scan(work / "scan")
-    best = [r for r in found if r["best"]]
+    best = found
     right = sum(r["verdict"] == "match" and r["candidate_asset"] == f"asset-{int(Path(r['suspect_path']).stem[-3:]) % n_assets:02d}"
                 for r in best)
     cand = sum(r["seconds_candidates"] or 0 for r in best)
@@ -137,7 +137,74 @@ def scan_bench(n_assets=50, n_suspects=100, n_points=5000):
           f"registration {100 * reg / total:.1f} %, detection {100 * det / total:.1f} %")
 
 
-BENCHES = {"spectral": spectral_bench, "catalog": catalog_bench, "scan": scan_bench}
+def fingerprint_bench():
+    """Scoring every issued recipient of one asset: 1,000 / 10,000 / 100,000 recipients."""
+    from pipeline.kernels import fingerprint
+
+    length = 5 * 3 * 320          # the default embedding: 5 clusters x 3 axes x 320 coefficients
+    y = np.random.default_rng(0).normal(size=length)
+    material = b"bench-material-0123456789abcdef!"
+    print(f"fingerprint scoring, {length} chips per recipient, one suspect")
+    for n in (1000, 10000, 100000):
+        names = [f"recipient-{i:06d}" for i in range(n)]
+        t_bank = best_of(lambda: fingerprint.chip_bank(material, "asset/g1", names, length), repeat=2)
+        bank = fingerprint.chip_bank(material, "asset/g1", names, length)
+        t_score = best_of(lambda: fingerprint.scores(y, bank))
+        print(f"  {n:>7,} recipients: derive fingerprints {t_bank:6.3f} s, score {t_score:6.3f} s, "
+              f"together {t_bank + t_score:6.3f} s ({1e6 * (t_bank + t_score) / n:.1f} us per recipient)")
+
+
+def _issue_run(work, recipients):
+    """One serial catalogue run in a child process; (seconds, peak RSS in MB)."""
+    import json
+    import subprocess
+
+    code = f"""
+import json, resource, sys, time
+sys.path.insert(0, {str(ROOT)!r})
+from pipeline import config
+from pipeline.orchestrate.progress import Progress
+from pipeline.orchestrate.run import plan_job, run_job
+cfg = config.load_config({str(work / 'issue.yaml')!r}, ["recipients=" + json.dumps({recipients!r})])
+t0 = time.perf_counter()
+job = plan_job(cfg, b"bench-secret-0123456789")
+counts = run_job(job, cfg, serial=True, progress=Progress())
+assert counts["failed"] == 0, counts
+print(json.dumps([time.perf_counter() - t0, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024]))
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def issue_bench(n_copies=1000):
+    """Issuing copies of the bunny: the first copy, then each further one (bases from the store)."""
+    import shutil
+
+    import yaml
+
+    bunny = ROOT.parent / "shared" / "data" / "models" / "bunny_zipper_faceref_34834.ply"
+    work = ROOT / "bench" / "results" / "issue"
+    shutil.rmtree(work, ignore_errors=True)
+    work.mkdir(parents=True)
+    cfg = yaml.safe_load((ROOT / "configs" / "default.yaml").read_text())
+    cfg.update({"catalog": {"source": str(bunny)}, "key": {"id": "bench"},
+                "output": {"dir": str(work / "marked"), "manifests": str(work / "ledger")}})
+    (work / "issue.yaml").write_text(yaml.safe_dump(cfg))
+    names = [f"recipient-{i:04d}" for i in range(n_copies)]
+    first, rss_first = _issue_run(work, names[:1])
+    ten, rss_ten = _issue_run(work, names[:11])
+    rest, rss_rest = _issue_run(work, names)
+    per_copy = rest / (n_copies - 11)
+    print(f"issuing copies of the bunny (34,834 points, configs/default.yaml), serial, one process per run")
+    print(f"  first copy (clusters, 5 bases, write): {first:8.2f} s, peak RSS {rss_first:6.0f} MB")
+    print(f"  10 more copies                       : {ten:8.2f} s, peak RSS {rss_ten:6.0f} MB")
+    print(f"  {n_copies - 11} more copies                      : {rest:8.2f} s, peak RSS {rss_rest:6.0f} MB")
+    print(f"  per further copy                     : {per_copy:8.3f} s = {100 * per_copy / first:.1f} % of the first")
+    shutil.rmtree(work / "marked", ignore_errors=True)
+
+
+BENCHES = {"spectral": spectral_bench, "catalog": catalog_bench, "scan": scan_bench,
+           "fingerprint": fingerprint_bench, "issue": issue_bench}
 
 
 def main(argv):

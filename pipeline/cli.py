@@ -16,14 +16,15 @@ import time
 import numpy as np
 
 from . import __version__, config as config_mod
-from .io.pointcloud import InputError, read_points, write_points
+from .io.pointcloud import InputError, check_distinct, check_output, read_points, write_points
+from .io.ledger import LedgerError
 from .io.secrets import SecretError, load_secret
 from .kernels import keys, modulation
-from .watermark import WatermarkError, detect, distortion, embed, params_record
+from .watermark import ReferenceMismatch, WatermarkError, detect, distortion, embed, params_record
 
 log = logging.getLogger("pointmark")
 
-USAGE_ERRORS = (InputError, SecretError, config_mod.ConfigError)
+USAGE_ERRORS = (InputError, SecretError, config_mod.ConfigError, ReferenceMismatch, LedgerError)
 
 
 def _common(p):
@@ -52,11 +53,19 @@ def build_parser():
     _common(p)
     p.set_defaults(func=cmd_embed)
 
-    p = sub.add_parser("detect", help="check a suspect file against its original")
+    p = sub.add_parser("detect", help="which issued copy a suspect is (--ledger), or decode a message "
+                                      "(--original with --key-id)")
     p.add_argument("suspect")
-    p.add_argument("--original", required=True)
-    _key_args(p)
-    p.add_argument("--expect", help="issued payload as HEX: also report bit errors against it")
+    where = p.add_mutually_exclusive_group(required=True)
+    where.add_argument("--ledger", help="issuance ledger folder (output.manifests of the run): parameters, "
+                                        "originals and recipients come from it, no config needed")
+    where.add_argument("--original", help="the original file, to decode an arbitrary message (paper mode)")
+    p.add_argument("--asset", help="with --ledger: check only this asset key")
+    p.add_argument("--bases", help="with --ledger: basis store folder (default LEDGER/bases)")
+    p.add_argument("--top-k", type=int, default=3, help="with --ledger: candidate assets checked (by shape)")
+    p.add_argument("--key-id", help="with --original: id of the watermark key")
+    p.add_argument("--secret-file", help="file holding the master secret (else $POINTMARK_SECRET)")
+    p.add_argument("--expect", help="with --original: issued payload as HEX: also report bit errors against it")
     _common(p)
     p.set_defaults(func=cmd_detect)
 
@@ -64,7 +73,8 @@ def build_parser():
     p.add_argument("config_file")
     p.add_argument("--set", dest="sets", action="append", default=[], metavar="NAME=VALUE")
     p.add_argument("--secret-file", help="file holding the master secret (else key.secret_file or $POINTMARK_SECRET)")
-    p.add_argument("--force", action="store_true", help="redo assets that are already done")
+    p.add_argument("--force", action="store_true",
+                   help="also rewrite issued copies whose file is missing (the ledger is never rewritten)")
     p.add_argument("--dry-run", action="store_true", help="print the plan, write nothing")
     p.add_argument("--serial", action="store_true", help="plain loop in this process, no Dask")
     p.add_argument("--shard", help="I/N: only every N-th asset from the I-th (0-based)")
@@ -127,6 +137,7 @@ def _emit(args, result, lines):
 
 
 def cmd_embed(args):
+    check_output(args.original, args.output)
     cfg = config_mod.load_config(args.config, args.sets)
     params = config_mod.watermark_params(cfg)
     secret = _secret(args, cfg)
@@ -136,12 +147,14 @@ def cmd_embed(args):
         raise InputError(f"--message: {exc}") from None
     t0 = time.perf_counter()
     cloud = read_points(args.original)
+    check_distinct(args.original, cloud.points)
     material = keys.derive_key_material(secret, args.key_id)
     try:
         marked, clusters = embed(cloud.points, material, bits, params)
     except WatermarkError as exc:
         raise InputError(f"{args.original}: {exc}") from None
     write_points(cloud, marked, args.output)
+    stored = _read_back(args.output)  # the coordinates rounded to the output's precision
     result = {
         "output": str(args.output),
         "original": str(args.original),
@@ -149,9 +162,8 @@ def cmd_embed(args):
         "n_bits": params.n_bits,
         "message": modulation.bits_to_hex(bits),
         "key_id": args.key_id,
-        "key_fingerprint": keys.fingerprint(secret),
         "clusters": clusters,
-        "distortion": distortion(cloud.points, marked),
+        "distortion": distortion(cloud.points, stored),
         "params": params_record(params),
         "seconds": round(time.perf_counter() - t0, 3),
     }
@@ -166,7 +178,22 @@ def cmd_embed(args):
     return 0
 
 
+def _read_back(path):
+    """Coordinates as the written file holds them; an unreadable output is removed."""
+    from pathlib import Path
+
+    try:
+        return read_points(path).points
+    except InputError as exc:
+        Path(path).unlink(missing_ok=True)
+        raise InputError(f"{exc} (the file just written cannot be read back; removed)") from None
+
+
 def cmd_detect(args):
+    if args.ledger:
+        return cmd_detect_ledger(args)
+    if not args.key_id:
+        raise config_mod.ConfigError("detect --original: --key-id is required")
     cfg = config_mod.load_config(args.config, args.sets)
     params = config_mod.watermark_params(cfg)
     secret = _secret(args, cfg)
@@ -186,7 +213,6 @@ def cmd_detect(args):
     except WatermarkError as exc:
         raise InputError(f"{args.original}: {exc}") from None
     result.update(suspect=str(args.suspect), original=str(args.original), key_id=args.key_id,
-                  key_fingerprint=keys.fingerprint(secret),
                   seconds=round(time.perf_counter() - t0, 3))
     if expect is not None:
         result["bit_errors"] = int((np.asarray(result["bits"]) != expect).sum())
@@ -198,12 +224,35 @@ def cmd_detect(args):
     return 0
 
 
+def cmd_detect_ledger(args):
+    from .orchestrate.detect import detect_from_ledger
+
+    cfg = config_mod.load_config(args.config, args.sets)
+    secret = _secret(args, cfg)
+    result = detect_from_ledger(args.suspect, args.ledger, secret, config_mod.detect_params(cfg),
+                                asset=args.asset, store=args.bases, top_k=args.top_k)
+    lines = [f"{args.suspect}: {result['verdict'].upper()} ({result['n_checked']} recipients of "
+             f"{len(result['candidates'])} asset(s) checked, threshold {result['threshold']:.2f})"]
+    for a in result["accused"]:
+        gens = ", ".join(f"generation {g}" for g, _ in a["copies"])
+        lines.append(f"  accused: {a['recipient']} (asset {a['asset_key']}, key {a['key_id']}, {gens}): "
+                     f"score {a['score']:.1f}, corrected p = {a['p_value']:.3g}, margin {a['margin']:.1f} "
+                     f"over the best innocent")
+    if not result["accused"] and result["best_score"] is not None:
+        lines.append(f"  best score {result['best_score']:.2f} (p = {result['p_value']:.3g}): nobody accused")
+    _emit(args, result, lines)
+    return 0
+
+
 def cmd_attack(args):
     from pathlib import Path
 
     from .io.pointcloud import format_of, write_array
     from .surface import apply_chain, parse_attack
 
+    # An attack writes bare coordinates, in the output's own format: a format
+    # change (LAS to PLY, say) is itself an attack, so only the path is checked.
+    check_output(args.input, args.output, same_format=False)
     try:
         chain = [parse_attack(a) for a in args.attacks]
     except ValueError as exc:
@@ -230,7 +279,7 @@ def cmd_evaluate(args):
 
 
 def cmd_scan(args):
-    from .scan import run_scan
+    from .orchestrate.scan import run_scan
 
     cfg = config_mod.load_config(args.config_file, args.sets)
     return run_scan(cfg, _secret(args, cfg), force=args.force)
@@ -264,19 +313,23 @@ def cmd_run(args):
 
     cfg = config_mod.load_config(args.config_file, args.sets)
     secret = _secret(args, cfg)
-    job = plan_job(cfg, secret, force=args.force, shard=_shard(args.shard))
-    print(f"run {job.run_id}: {len(job.assets)} assets, {len(job.todo)} to do, "
-          f"{len(job.assets) - len(job.todo)} already done; key {job.key_id} ({job.key_fingerprint})")
+    job = plan_job(cfg, secret, force=args.force, shard=_shard(args.shard), create=not args.dry_run)
+    new = sum(len(a.items) for a in job.assets if not a.error)
+    print(f"run {job.run_id}: {len(job.assets)} assets, {new} copies to issue, "
+          f"{sum(a.issued for a in job.assets)} already issued; key {job.key_id} ({job.key_fingerprint}); "
+          f"ledger {job.manifests}")
     if args.dry_run:
-        params = job.params
         for item in job.assets:
-            state = "done, skip" if item.skip else f"{params.n_clusters} clusters, {2 + params.n_clusters} tasks"
-            recips = ", ".join(r for r, _, _ in item.outputs)
-            print(f"  {item.key}: {item.path} -> {len(item.outputs)} recipients ({recips}); {state}")
+            if item.error:
+                print(f"  {item.key}: {item.error}")
+                continue
+            names = ", ".join(r for r, _ in item.items) or "nothing new"
+            missing = f"; {len(item.missing)} issued file(s) missing (--force rewrites them)" if item.missing else ""
+            print(f"  {item.key}: generation {item.generation}, {item.issued} issued; to issue: {names}{missing}")
         return 0
     counts = run_job(job, cfg, serial=args.serial)
-    print(f"done: {counts['ok']} ok, {counts['failed']} failed, {counts['skipped']} skipped; "
-          f"manifests in {job.manifests}")
+    print(f"done: {counts['ok']} ok, {counts['failed']} failed, {counts['skipped']} with nothing new; "
+          f"ledger in {job.manifests}")
     return 1 if counts["failed"] else 0
 
 
@@ -307,8 +360,17 @@ def main(argv=None):
     try:
         return args.func(args)
     except USAGE_ERRORS as exc:
-        print(f"pointmark: error: {exc}", file=sys.stderr)
+        print(f"pointmark: error: {_one_line(str(exc))}", file=sys.stderr)
         return 2
+    except OSError as exc:  # a full disk, a permission refused while writing
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"pointmark: error: {where}{_one_line(exc.strerror or str(exc))}", file=sys.stderr)
+        return 2
+
+
+def _one_line(text):
+    """A message on one line (a YAML or library message may span several)."""
+    return "; ".join(line.strip() for line in text.splitlines() if line.strip())
 
 
 if __name__ == "__main__":

@@ -11,11 +11,13 @@ from __future__ import annotations
 
 import copy
 import json
+import math
 from dataclasses import fields
 from pathlib import Path
 
 import yaml
 
+from .io.catalog import RECIPIENT_PATTERN
 from .watermark import DetectParams, WatermarkParams
 
 __all__ = ["ConfigError", "SCHEMA", "load_config", "watermark_params", "detect_params",
@@ -77,12 +79,14 @@ WATERMARK = _section("Embedding parameters (paper, section 2.2).", {
 })
 
 DETECTION = _section("Detection (paper, section 2.2, Extraction).", {
-    "registration": _p(["none", "paper", "robust"], "robust",
-                       "none; paper: covariance frames; robust: frame hypotheses + ICP with scale."),
+    "registration": _p(["none", "paper", "robust", "global"], "robust",
+                       "none; paper: covariance frames; robust: frame hypotheses + ICP with scale "
+                       "(the global step competes when under 80 % of the suspect fits); global: FPFH "
+                       "correspondences, RANSAC with scale, trimmed ICP (parts, scenes, outliers)."),
     "correspondence": _p(["paper", "spectral"], "spectral",
                          "paper: nearest point under d_r; spectral: least-squares fit of coefficients."),
     "p_threshold": _p("number", 1e-6, "Report 'watermarked' when p_value < p_threshold.",
-                      exclusiveMinimum=0, maximum=1),
+                      exclusiveMinimum=0, exclusiveMaximum=1),
     "iterations": _p("integer", 2, "Least-squares refits (spectral).", minimum=1, maximum=20),
     "ridge": _p("number", 1.0, "Relative ridge of the least-squares fit (spectral).", minimum=0),
     "tangential_gate": _p("number", 0.25,
@@ -94,6 +98,10 @@ DETECTION = _section("Detection (paper, section 2.2, Extraction).", {
     "gate_switch": _p("number", 0.4,
                       "Noise across the surface, in median spacings, above which the fixed gate "
                       "replaces the ratio gate (0: always fixed).", minimum=0),
+    "epsilon": _p("number", 1e-6,
+                  "Largest probability of accusing any innocent recipient, per suspect: a recipient is "
+                  "named only when its fingerprint score clears the threshold this sets for the number "
+                  "of recipients checked.", exclusiveMinimum=0, exclusiveMaximum=1),
 })
 
 KEY = _section("Key identity; the secret itself comes from POINTMARK_SECRET or secret_file.", {
@@ -108,7 +116,12 @@ CATALOG = _section("The assets to watermark.", {
 
 OUTPUT = _section("Where results go; relative paths are relative to the working directory.", {
     "dir": _p("string", "out/marked", "Watermarked copies: DIR/RECIPIENT/ASSET_KEY.EXT."),
-    "manifests": _p("string", "out/manifests", "Embedding manifests: one Parquet file per asset."),
+    "manifests": _p("string", "out/manifests",
+                    "The issuance ledger: an append-only Parquet dataset (copies/part-*.parquet), "
+                    "one row per issued copy, never rewritten."),
+    "bases": _p(("string", "null"), None,
+                "The basis store (clusters, spectral bases, normals by content hash and parameters); "
+                "null: MANIFESTS/bases."),
 })
 
 DASK = _section("The Dask cluster that runs the graph.", {
@@ -152,6 +165,13 @@ EVALUATE = _section("The robustness evaluation (pointmark evaluate).", {
                       "parameters": {"type": "array", "items": {"type": "object"}, "default": [{}]},
                       "repetitions": {"type": "integer", "minimum": 1},
                       "methods": _METHODS,
+                      "collusion": {"type": "array", "minItems": 1, "description":
+                                    "Fingerprint trials instead of message trials: single, average:K, "
+                                    "interleave:K (K colluders), unmarked, other-key (every recipient innocent).",
+                                    "items": {"type": "string",
+                                              "pattern": "^(single|unmarked|other-key|(average|interleave):[1-9][0-9]*)$"}},
+                      "recipients": {"type": "integer", "minimum": 1, "default": 1000,
+                                     "description": "Recipients issued per asset in fingerprint trials."},
                   }},
     },
     "false_positive_keys": _p("integer", 1000, "Wrong keys tried on each model (0: skip).", minimum=0),
@@ -169,9 +189,11 @@ SCAN = _section("Leak-detection scans (pointmark scan).", {
 })
 
 RECIPIENTS = {
-    "description": "Recipient ids; each gets its own payload and output file per asset.",
-    "type": "array", "items": {"type": "string", "minLength": 1}, "uniqueItems": True,
-    "default": ["default"],
+    "description": "Recipient ids; each gets its own fingerprint and output file per asset.  An asset "
+                   "whose catalogue file names recipients gets those and these (both, never one "
+                   "dropped); an asset with none anywhere gets 'default'.",
+    "type": "array", "items": {"type": "string", "pattern": RECIPIENT_PATTERN, "not": {"pattern": "[.][.]"}},
+    "uniqueItems": True, "default": [],
 }
 
 SCHEMA = {
@@ -239,7 +261,12 @@ def _apply_set(cfg, assignment):
     node = cfg
     for part in paths[0][:-1]:
         node = node.setdefault(part, {})
-    node[paths[0][-1]] = yaml.safe_load(raw)
+        if not isinstance(node, dict):
+            raise ConfigError(f"--set {name}: the config's {part!r} is not a mapping of keys")
+    try:
+        node[paths[0][-1]] = yaml.safe_load(raw)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"--set {name}: the value {raw!r} is not valid YAML: {_yaml_problem(exc)}") from None
 
 
 def load_config(path=None, overrides=()):
@@ -262,9 +289,13 @@ def load_config(path=None, overrides=()):
         if not path.is_file():
             raise ConfigError(f"{path}: config file not found")
         try:
-            user = yaml.safe_load(path.read_text()) or {}
+            user = yaml.safe_load(path.read_bytes().decode("utf-8")) or {}
+        except UnicodeDecodeError as exc:
+            raise ConfigError(f"{path}: not a UTF-8 text file (byte {exc.start})") from None
         except yaml.YAMLError as exc:
-            raise ConfigError(f"{path}: not valid YAML: {exc}") from None
+            raise ConfigError(f"{path}: not valid YAML: {_yaml_problem(exc)}") from None
+        except RecursionError:
+            raise ConfigError(f"{path}: not valid YAML: nested too deeply") from None
         if not isinstance(user, dict):
             raise ConfigError(f"{path}: the config must be a mapping of sections")
     for assignment in overrides:
@@ -279,12 +310,57 @@ def validate(cfg, source="config"):
     """Raise :class:`ConfigError` naming the first invalid key."""
     import jsonschema
 
+    _check_values(cfg, source)
     validator = jsonschema.Draft202012Validator(SCHEMA)
-    errors = sorted(validator.iter_errors(cfg), key=lambda e: list(e.absolute_path))
+    errors = sorted(validator.iter_errors(cfg),
+                    key=lambda e: [(0, p, "") if isinstance(p, int) else (1, 0, str(p))
+                                   for p in e.absolute_path])
     if errors:
         err = errors[0]
         where = ".".join(str(p) for p in err.absolute_path) or "(top level)"
         raise ConfigError(f"{source}: {where}: {_explain(err)}")
+
+
+# YAML aliases can make a small file expand to a huge (or endless) tree.
+_MAX_VALUES = 100_000
+
+
+def _check_values(cfg, source):
+    """Keys are strings, every number is finite, the tree is finite and not too large."""
+    count = 0
+    stack = [(cfg, (), frozenset())]
+    while stack:
+        node, where, above = stack.pop()
+        count += 1
+        if count > _MAX_VALUES:
+            raise ConfigError(f"{source}: more than {_MAX_VALUES} values (YAML aliases expanding?)")
+        key = ".".join(str(p) for p in where) or "(top level)"
+        if isinstance(node, float) and not math.isfinite(node):
+            raise ConfigError(f"{source}: {key}: {node!r} is not a finite number")
+        if isinstance(node, (dict, list)):
+            if id(node) in above:
+                raise ConfigError(f"{source}: {key}: a YAML alias refers to itself")
+            inside = above | {id(node)}
+            if isinstance(node, dict):
+                for k, v in node.items():
+                    if not isinstance(k, str):
+                        raise ConfigError(f"{source}: {key}: the key {k!r} is not a string")
+                    stack.append((v, where + (k,), inside))
+            else:
+                stack.extend((v, where + (i,), inside) for i, v in enumerate(node))
+
+
+def _yaml_problem(exc):
+    """One line from a PyYAML error: where and what."""
+    mark = getattr(exc, "problem_mark", None)
+    problem = getattr(exc, "problem", None) or str(exc)
+    context = getattr(exc, "context", None)
+    text = " ".join(str(problem).split())
+    if context:
+        text += f" ({' '.join(str(context).split())})"
+    if mark is not None:
+        text = f"line {mark.line + 1}, column {mark.column + 1}: {text}"
+    return text
 
 
 def _explain(err):

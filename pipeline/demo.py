@@ -121,16 +121,13 @@ def run_demo(folder, config_path):
     """``make demo``: generate, catalogue, watermark on Dask, detect one copy, summarise."""
     from pathlib import Path
 
-    import pyarrow.compute as pc
-
     from . import config as config_mod
     from .io.catalog import catalogue_record, discover_assets, write_catalogue
-    from .io.manifest import EMBED_SCHEMA, read_dataset
-    from .io.pointcloud import atomic_write_bytes, read_points
+    from .io.pointcloud import atomic_write_bytes, read_points, write_array
     from .io.secrets import load_secret
-    from .kernels import keys
+    from .kernels import attacks
+    from .orchestrate.detect import detect_from_ledger
     from .orchestrate.run import plan_job, run_job
-    from .watermark import detect
 
     folder = Path(folder)
     assets_dir = folder / "assets"
@@ -140,7 +137,7 @@ def run_demo(folder, config_path):
         atomic_write_bytes(key_file, b"pointmark-demo-secret-DO-NOT-USE-IN-PRODUCTION\n")
     cfg = config_mod.load_config(config_path)
     catalogue = folder / "catalog.parquet"
-    rows = [catalogue_record(a) for a in discover_assets(assets_dir, default_recipients=cfg["recipients"])]
+    rows = [catalogue_record(a) for a in discover_assets(assets_dir)]
     write_catalogue(rows, catalogue)
     print(f"demo catalogue: {len(rows)} procedural assets in {assets_dir} -> {catalogue}")
     print(f"demo key file: {key_file} (DEMO ONLY: a public key, never use it for real assets)")
@@ -148,23 +145,26 @@ def run_demo(folder, config_path):
     secret = load_secret(cfg["key"]["secret_file"])
     job = plan_job(cfg, secret)
     print(f"run {job.run_id}: {len(job.assets)} assets x {len(cfg['recipients'])} recipients, "
-          f"{len(job.todo)} to do on Dask")
+          f"{sum(len(a.items) for a in job.todo)} copies to issue on Dask")
     counts = run_job(job, cfg)
     print(f"done: {counts['ok']} ok, {counts['failed']} failed, {counts['skipped']} skipped")
 
-    table = read_dataset(job.manifests, EMBED_SCHEMA)
-    ok = table.filter(pc.equal(table["status"], "ok"))
-    print(f"manifest ({job.manifests}, read with pyarrow.dataset): {table.num_rows} rows, {ok.num_rows} ok")
-    for row in ok.select(["asset_key", "recipient", "payload", "n_points", "rmse_rel_diag"]).to_pylist():
-        print(f"  {row['asset_key']:<10} {row['recipient']:<10} payload {row['payload']}  "
-              f"{row['n_points']:>6} points  RMSE {100 * row['rmse_rel_diag']:.4f} % of diag")
+    rows = job.ledger.rows(status=None)
+    ok = [r for r in rows if r["status"] == "ok"]
+    print(f"ledger ({job.manifests}/copies, read with pyarrow.dataset): {len(rows)} rows, {len(ok)} issued copies")
+    for row in ok:
+        print(f"  {row['asset_key']:<10} {row['recipient']:<10} generation {row['generation']}  "
+              f"{row['n_points']:>6} points  RMSE {100 * row['rmse_rel_diag']:.4f} %, to the surface "
+              f"{100 * row['surface_rmse_rel_diag']:.4f} % of diag")
 
-    pick = ok.to_pylist()[1]
-    suspect = read_points(pick["output_path"]).points
-    original = read_points(pick["source_path"]).points
-    result = detect(suspect[::-1], original, keys.derive_key_material(secret, job.key_id),
-                    job.params, config_mod.detect_params(cfg))
-    verdict = "WATERMARKED" if result["detected"] else "not watermarked"
-    print(f"detect {pick['output_path']} (points reversed): {verdict}, payload {result['message']} "
-          f"(issued {pick['payload']} to {pick['recipient']}), p = {result['p_value']:.2g}")
-    return 0 if counts["failed"] == 0 and result["message"] == pick["payload"] else 1
+    pick = ok[1]
+    leak = folder / "leaked" / f"{pick['recipient']}-{Path(pick['output_path']).stem}.ply"
+    points = read_points(pick["output_path"]).points
+    write_array(leak.parent, leak.stem, attacks.apply_chain(points, [("random_similarity", None), ("shuffle", None)], 7),
+                "ply", keep_existing=False)
+    result = detect_from_ledger(leak, job.manifests, secret, config_mod.detect_params(cfg))
+    named = ", ".join(f"{a['recipient']} (score {a['score']:.1f}, p = {a['p_value']:.2g})" for a in result["accused"])
+    print(f"detect {leak} (rotated, rescaled, shuffled) --ledger {job.manifests}: {result['verdict']}: "
+          f"{named or 'nobody'}; issued to {pick['recipient']}")
+    right = [a["recipient"] for a in result["accused"]] == [pick["recipient"]]
+    return 0 if counts["failed"] == 0 and right else 1

@@ -8,7 +8,6 @@ bases of a model are computed once per cluster parameters, cached as a
 
 from __future__ import annotations
 
-import hashlib
 import json
 import sys
 import time
@@ -21,12 +20,13 @@ import pyarrow.parquet as pq
 
 from . import config as config_mod
 from .io.pointcloud import atomic_write_bytes, read_points
-from .kernels import keys, modulation
+from .kernels import fingerprint, keys, modulation
 from .surface import apply_chain, parse_attack
-from .watermark import (ClusterSpec, DetectParams, cluster_basis, decode, distortion, embed_with_bases,
-                        estimate_differences, frame_of, plan_clusters)
+from .watermark import (ClusterSpec, Reference, decode, distortion, embed_with_bases, estimate_differences,
+                        fingerprint_displacement, fingerprint_length, fingerprint_observation)
 
-__all__ = ["run_evaluation", "parse_chain", "trial", "prepare_bases", "load_bases"]
+__all__ = ["run_evaluation", "parse_chain", "trial", "prepare_bases", "load_bases", "fingerprint_trial",
+           "parse_case"]
 
 MESSAGE = "5ca1ab1e"
 _CLUSTER_KEYS = ("valence", "n_clusters", "cluster_size", "seeds", "on_touch", "cover")
@@ -55,35 +55,31 @@ def method_params(method, params, detect_params):
     return paper_embedding, detect_params
 
 
-def prepare_bases(model_path, params, cache_path):
-    """Clusters and bases of a model, saved to ``cache_path`` (.npz); returns the path."""
-    cache_path = Path(cache_path)
-    if cache_path.exists():
-        return str(cache_path)
-    points = read_points(model_path).points
-    frame = frame_of(points)
-    centred = points - frame.centre
-    specs = plan_clusters(centred, params)
-    arrays = {"centre": frame.centre, "phi": np.array(frame.phi)}
-    for s in specs:
-        arrays[f"members_{s.index}"] = s.members
-        arrays[f"seed_{s.index}"] = np.array(s.seed_index)
-        arrays[f"basis_{s.index}"] = cluster_basis(centred[s.members], params)[1]
-    import io
-
-    buf = io.BytesIO()
-    np.savez(buf, **arrays)
-    atomic_write_bytes(cache_path, buf.getvalue())
-    return str(cache_path)
+def _basis_params(params, n_coefficients):
+    """Parameters whose reference holds ``n_coefficients`` vectors (one basis serves every c and m)."""
+    return replace(params, chip_rate=1, n_bits=n_coefficients, crc_bits=0, first_coefficient=0)
 
 
-def load_bases(cache_path, n_coefficients):
-    """Frame and clusters saved by ``prepare_bases``: (centre (3,), phi, specs, bases (n_c, K))."""
-    data = np.load(cache_path)
-    n = len([k for k in data.files if k.startswith("members_")])
-    specs = [ClusterSpec(i, int(data[f"seed_{i}"]), 0, data[f"members_{i}"]) for i in range(n)]
-    bases = [data[f"basis_{i}"][:, :n_coefficients] for i in range(n)]
-    return data["centre"], float(data["phi"]), specs, bases
+def prepare_bases(model_path, params, store):
+    """Clusters and bases of a model in the basis store; returns the handle (store, key)."""
+    from .io.basis_store import BasisStore
+    from .io.pointcloud import sha256_file
+    from .orchestrate.reference import load_reference
+
+    key = BasisStore(store).key(sha256_file(model_path), params)
+    load_reference(read_points(model_path).points, params, store, key)
+    return str(store), key
+
+
+def load_bases(handle, n_coefficients):
+    """Frame and clusters of :func:`prepare_bases`: (centre (3,), phi, specs, bases (n_c, K))."""
+    from .io.basis_store import BasisStore
+
+    store, key = BasisStore(handle[0]), handle[1]
+    centre, phi, seeds, members = store.load_meta(key)
+    specs = [ClusterSpec(i, int(s), 0, m) for i, (s, m) in enumerate(zip(seeds, members))]
+    bases = [store.load_cluster(key, i)[1][:, :n_coefficients] for i in range(len(specs))]
+    return centre, phi, specs, bases
 
 
 def _message_bits(params):
@@ -123,6 +119,113 @@ def trial(model_path, cache_path, params, detect_params, chain_text, method, see
     }
 
 
+def _stored_reference(handle, n_coefficients):
+    """The Reference of a prepared handle, bases cut to ``n_coefficients``."""
+    from .io.basis_store import BasisStore
+
+    store, key = BasisStore(handle[0]), handle[1]
+    centre, phi, seeds, members = store.load_meta(key)
+    specs = [ClusterSpec(i, int(sd), 0, m) for i, (sd, m) in enumerate(zip(seeds, members))]
+    parts = [store.load_cluster(key, i) for i in range(len(specs))]
+    normals = [p[2] for p in parts] if parts[0][2] is not None else None
+    return Reference(centre, phi, specs, [p[1][:, :n_coefficients] for p in parts], normals, [p[0] for p in parts])
+
+
+def parse_case(text):
+    """'single' -> ('average', 1); 'average:3'; 'interleave:2'; 'unmarked' and 'other-key' -> 0 colluders."""
+    kind, _, count = text.partition(":")
+    if kind == "single":
+        return "average", 1
+    if kind in ("unmarked", "other-key"):
+        return kind, 0
+    if kind not in ("average", "interleave") or not count.isdigit() or int(count) < 1:
+        raise ValueError(f"collusion case {text!r}: use single, average:K, interleave:K, unmarked or other-key")
+    return kind, int(count)
+
+
+def fingerprint_trial(model_path, handle, params, detect_params, chain_text, case, seed, material, n_recipients):
+    """Issue fingerprinted copies, let colluders combine them, attack, attribute; one row.
+
+    The suspect is the average of the colluders' copies (``average:K``), or
+    each point taken from one colluder's copy at random (``interleave:K``),
+    then the attack chain, then a shuffle.  ``unmarked`` checks the original
+    and ``other-key`` a copy under another key: every recipient is innocent.
+    """
+    t0 = time.perf_counter()
+    cloud = read_points(model_path)
+    points = cloud.points
+    ref = _stored_reference(handle, params.n_coefficients)
+    kind, k = parse_case(case)
+    rng = np.random.default_rng(seed)
+    names = [f"recipient-{i:05d}" for i in range(n_recipients)]
+    length = fingerprint_length(len(ref.specs), params)
+    label = f"{Path(model_path).stem}/g1"
+    bank = fingerprint.chip_bank(material, label, names, length)
+    colluders = np.sort(rng.choice(n_recipients, size=k, replace=False)) if k else np.zeros(0, dtype=int)
+    centred = points - ref.centre
+
+    def copy(chips):
+        moved = centred.copy()
+        for spec, d in zip(ref.specs, fingerprint_displacement(ref, chips, params)):
+            moved[spec.members] += d
+        return moved
+
+    if kind == "unmarked":
+        suspect = centred
+    elif kind == "other-key":
+        other = fingerprint.chip_bank(keys.derive_key_material(b"evaluation-other-key-0001", "other"), label,
+                                      names[:1], length)
+        suspect = copy(fingerprint.signs(other, length)[0])
+    else:
+        copies = np.stack([copy(fingerprint.signs(bank[j], length)[0]) for j in colluders])
+        suspect = copies.mean(axis=0) if kind == "average" else copies[rng.integers(k, size=len(points)),
+                                                                         np.arange(len(points))]
+    t1 = time.perf_counter()
+    attacked = apply_chain(suspect + ref.centre, parse_chain(chain_text) + [("shuffle", None)], rng=seed,
+                           faces=cloud.faces())
+    est = estimate_differences(attacked - ref.centre, centred, ref.specs, ref.bases, detect_params,
+                               params.displacement)
+    s = fingerprint.scores(fingerprint_observation(est, ref.specs, params), bank)
+    accused, _ = fingerprint.accuse(s, n_recipients, detect_params.epsilon)
+    innocent = np.setdiff1d(np.arange(n_recipients), colluders)
+    guilty = set(colluders.tolist())
+    return {
+        "model": Path(model_path).stem, "case": case, "colluders": int(k), "attack": chain_text, "seed": int(seed),
+        "n_recipients": n_recipients, "epsilon": detect_params.epsilon,
+        "threshold": fingerprint.threshold(n_recipients, detect_params.epsilon),
+        "accused_colluders": int(sum(a in guilty for a in accused.tolist())),
+        "accused_innocents": int(sum(a not in guilty for a in accused.tolist())),
+        "min_colluder_score": float(s[colluders].min()) if k else float("nan"),
+        "max_innocent_score": float(s[innocent].max()),
+        "innocent_checks": int(len(innocent)),
+        **{f"innocents_over_{t}": int((s[innocent] >= t).sum()) for t in (2, 3, 4)},
+        "registration_fitness": est["registration"]["fitness"], "n_suspect": int(len(attacked)),
+        "seconds_copies": t1 - t0, "seconds_detect": time.perf_counter() - t1,
+    }
+
+
+def plan_fingerprint_trials(cfg):
+    """Experiments with a ``collusion`` list: (experiment, model, params, chain, case, seed, recipients)."""
+    ev = cfg["evaluate"]
+    base = config_mod.watermark_params(cfg)
+    out = []
+    for exp in ev["experiments"]:
+        if not exp.get("collusion"):
+            continue
+        reps = exp.get("repetitions", ev["repetitions"])
+        for model in exp["models"]:
+            for overrides in exp.get("parameters") or [{}]:
+                params = replace(base, **overrides)
+                for chain in exp["attacks"]:
+                    parse_chain(chain)
+                    for case in exp["collusion"]:
+                        parse_case(case)
+                        for rep in range(reps):
+                            out.append((exp["name"], model, params, chain, case, 1000 * rep + 29,
+                                        exp.get("recipients", 1000)))
+    return out
+
+
 def _strength(chain):
     values = [s for _, s in chain if s is not None]
     return float(values[-1]) if values else float("nan")
@@ -156,10 +259,9 @@ def false_positives(model_path, cache_path, params, detect_params, material, n_k
     return rows
 
 
-def _cache_name(model_path, params, n_coefficients):
-    text = json.dumps({"m": str(model_path), **{k: getattr(params, k) for k in _CLUSTER_KEYS},
-                       "k": n_coefficients}, sort_keys=True, default=str)
-    return hashlib.sha256(text.encode()).hexdigest()[:16] + ".npz"
+def _prep_key(model, params):
+    return json.dumps({"m": str(model), **{k: getattr(params, k) for k in _CLUSTER_KEYS}}, sort_keys=True,
+                      default=str)
 
 
 def plan_trials(cfg):
@@ -168,6 +270,8 @@ def plan_trials(cfg):
     base = config_mod.watermark_params(cfg)
     out = []
     for exp in ev["experiments"]:
+        if exp.get("collusion"):
+            continue
         reps = exp.get("repetitions", ev["repetitions"])
         for model in exp["models"]:
             for overrides in exp.get("parameters") or [{}]:
@@ -189,26 +293,29 @@ def run_evaluation(cfg, secret):
 
     ev = cfg["evaluate"]
     out = Path(ev["out"])
-    cache = out / "bases"
+    cache = Path(cfg["output"]["bases"] or out / "bases")
     cache.mkdir(parents=True, exist_ok=True)
     material = keys.derive_key_material(secret, cfg["key"]["id"] or "evaluation")
     detect_params = config_mod.detect_params(cfg)
     trials = plan_trials(cfg)
+    fp_trials = plan_fingerprint_trials(cfg)
     need = {}
-    for _, model, params, *_ in trials:
-        name = _cache_name(model, params, 0)
+    for _, model, params, *_ in trials + fp_trials:
+        name = _prep_key(model, params)
         need[name] = max(need.get(name, (0, model, params))[0], params.n_coefficients), model, params
     t0 = time.perf_counter()
     client, cluster = start_client(cfg)
     try:
-        prep = {name: client.submit(prepare_bases, src, replace(params, chip_rate=1, n_bits=k, crc_bits=0,
-                                                                first_coefficient=0),
-                                    str(cache / name), pure=False)
+        prep = {name: client.submit(prepare_bases, src, _basis_params(params, k), str(cache), pure=False)
                 for name, (k, src, params) in need.items()}
         futures = {}
         for exp, model, params, chain, method, seed in trials:
-            fut = client.submit(trial, model, prep[_cache_name(model, params, 0)], params, detect_params,
+            fut = client.submit(trial, model, prep[_prep_key(model, params)], params, detect_params,
                                 chain, method, seed, material, pure=False)
+            futures[fut] = exp
+        for exp, model, params, chain, case, seed, n_recipients in fp_trials:
+            fut = client.submit(fingerprint_trial, model, prep[_prep_key(model, params)], params, detect_params,
+                                chain, case, seed, material, n_recipients, pure=False)
             futures[fut] = exp
         fp_futures = []
         if ev["false_positive_keys"]:
@@ -216,14 +323,14 @@ def run_evaluation(cfg, secret):
             for _, model, params, *_ in trials:
                 if model not in seen and "/meshes/" not in model:
                     seen.add(model)
-                    fp_futures.append(client.submit(false_positives, model, prep[_cache_name(model, params, 0)],
+                    fp_futures.append(client.submit(false_positives, model, prep[_prep_key(model, params)],
                                                     params, detect_params, material, ev["false_positive_keys"],
                                                     pure=False))
-        rows, done = [], 0
+        rows, fingerprint_rows, done = [], [], 0
         for fut in as_completed(list(futures)):
             row = fut.result()
             row["experiment"] = futures[fut]
-            rows.append(row)
+            (fingerprint_rows if "case" in row else rows).append(row)
             done += 1
             if done % 25 == 0 or done == len(futures):
                 print(f"[pointmark] evaluate: {done}/{len(futures)} trials, "
@@ -235,9 +342,10 @@ def run_evaluation(cfg, secret):
             cluster.close()
     _write_table(out / "results.parquet", rows)
     _write_table(out / "false_positives.parquet", fp_rows)
-    write_report(out, rows, fp_rows, detect_params.p_threshold, time.perf_counter() - t0)
-    print(f"wrote {out / 'results.parquet'} ({len(rows)} trials), {out / 'summary.md'} and plots "
-          f"in {time.perf_counter() - t0:.0f}s")
+    _write_table(out / "fingerprints.parquet", fingerprint_rows)
+    write_report(out, rows, fp_rows, detect_params.p_threshold, time.perf_counter() - t0, fingerprint_rows)
+    print(f"wrote {out / 'results.parquet'} ({len(rows)} trials), {out / 'fingerprints.parquet'} "
+          f"({len(fingerprint_rows)} trials), {out / 'summary.md'} and plots in {time.perf_counter() - t0:.0f}s")
     return 0
 
 

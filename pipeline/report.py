@@ -142,7 +142,37 @@ def _md_table(header, rows):
     return "\n".join(out)
 
 
-def write_report(folder, rows, fp_rows, p_threshold, seconds):
+def fingerprint_lines(rows):
+    """Markdown section of the fingerprint trials: accusations per model, case and attack."""
+    if not rows:
+        return []
+    table = []
+    for (model, case, attack), rs in sorted(_group(rows, ("model", "case", "attack")).items()):
+        k = rs[0]["colluders"]
+        hit = sum(r["accused_colluders"] > 0 for r in rs)
+        every = sum(r["accused_colluders"] == k for r in rs) if k else 0
+        scores = [r["min_colluder_score"] for r in rs if k]
+        table.append([model, case, attack, len(rs), rs[0]["n_recipients"], f"{rs[0]['threshold']:.2f}",
+                      f"{hit}/{len(rs)}" if k else "-", f"{every}/{len(rs)}" if k else "-",
+                      f"{min(scores):.1f}" if scores else "-", sum(r["accused_innocents"] for r in rs),
+                      f"{max(r['max_innocent_score'] for r in rs):.2f}"])
+    checks = sum(r["innocent_checks"] for r in rows)
+    tails = [[f">= {t}", sum(r[f"innocents_over_{t}"] for r in rows), f"{sum(r[f'innocents_over_{t}'] for r in rows) / checks:.2e}",
+              f"{np.exp(-t * t / 2):.2e}"] for t in (2, 3, 4)]
+    eps = rows[0]["epsilon"]
+    return ["## Recipient fingerprints and collusion", "",
+            f"Each trial issues fingerprinted copies to {rows[0]['n_recipients']} recipients; colluders average their "
+            "copies or take each point from one of them at random; the suspect is attacked and shuffled. A "
+            f"recipient is accused when the score clears sqrt(2 ln(n / eps)), eps = {eps:g} per suspect.", "",
+            _md_table(["model", "case", "attack", "trials", "recipients", "threshold", ">= 1 colluder accused",
+                       "all colluders accused", "lowest colluder score", "innocents accused",
+                       "highest innocent score"], table), "",
+            f"Innocent checks: {checks:,}. Share of innocent scores over t, against the bound exp(-t^2/2) "
+            "that the threshold is built on:", "",
+            _md_table(["score", "innocents", "share", "bound"], tails), ""]
+
+
+def write_report(folder, rows, fp_rows, p_threshold, seconds, fingerprint_rows=()):
     """Write plots and summary.md into ``folder``."""
     folder = Path(folder)
     plots = [plot_attacks(rows, folder / "attacks.png"), plot_noise_curves(rows, folder / "noise_curves.png"),
@@ -191,6 +221,7 @@ def write_report(folder, rows, fp_rows, p_threshold, seconds):
                   f"Detection says 'watermarked' when p < {p_threshold:g}; under the null the p-value is "
                   "uniform, so a threshold t should flag a fraction t of wrong keys.", "",
                   _md_table(["suspect", "keys", "p<0.1", "p<0.01", "p<0.001", f"p<{p_threshold:g}"], fp), ""]
+    lines += fingerprint_lines(list(fingerprint_rows))
     lines += ["## Plots", ""] + [f"![{p.stem}]({p.name})" for p in plots if p is not None]
     (folder / "summary.md").write_text("\n".join(lines) + "\n")
     return folder / "summary.md"

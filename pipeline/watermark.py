@@ -14,17 +14,23 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .kernels import clustering, graph, keys, modulation, registration, resampling, spectral
+from .kernels import clustering, digest, fingerprint, graph, keys, modulation, registration, resampling, spectral
 
 __all__ = [
     "WatermarkParams", "DetectParams", "Frame", "ClusterSpec", "frame_of", "plan_clusters",
     "cluster_basis", "cluster_normals", "modulate_cluster", "embed", "embed_with_bases", "detect",
     "detect_with_bases", "estimate_differences", "decode", "distortion", "WatermarkError",
+    "Reference", "build_reference", "fingerprint_length", "fingerprint_displacement",
+    "fingerprint_observation", "ReferenceMismatch",
 ]
 
 
 class WatermarkError(ValueError):
     """The input cannot carry or be checked for the watermark (bad geometry, capacity)."""
+
+
+class ReferenceMismatch(RuntimeError):
+    """The reference rebuilt for detection differs from the one recorded at embedding."""
 
 
 @dataclass(frozen=True)
@@ -66,6 +72,7 @@ class DetectParams:
     tangential_gate: float = 0.25     # noisy suspects: tangential misfit of matches within this x spacing
     ratio_gate: float = 0.5           # clean suspects: of matches nearer than this x the second nearest
     gate_switch: float = 0.4          # noise (x median spacing) at which the fixed gate takes over
+    epsilon: float = 1e-6             # probability of accusing any innocent, per suspect
 
 
 @dataclass(frozen=True)
@@ -90,6 +97,114 @@ class ClusterSpec:
                 "radius": float(radius)}
 
 
+@dataclass(frozen=True)
+class Reference:
+    """What embedding used and detection must rebuild: frame, clusters, bases, normals.
+
+    Attributes
+    ----------
+    centre : (3,) float
+    phi : float
+        Largest bbox side of the original.
+    specs : list of ClusterSpec
+    bases : list of (n_c, n_coefficients) float
+    normals : list of (n_c, 3) float, or None for the xyz displacement
+    radii : list of float
+    """
+
+    centre: np.ndarray
+    phi: float
+    specs: list
+    bases: list = field(repr=False)
+    normals: list | None = field(repr=False, default=None)
+    radii: list = field(default_factory=list)
+
+    def digests(self):
+        """Membership and basis digest of every cluster (16 hex digits each)."""
+        return {"membership": [digest.membership_digest(s.members) for s in self.specs],
+                "basis": [digest.basis_digest(b) for b in self.bases]}
+
+    def verify(self, recorded, source="the ledger"):
+        """Raise :class:`ReferenceMismatch` naming what differs from ``recorded`` digests."""
+        mine = self.digests()
+        if len(recorded["membership"]) != len(self.specs):
+            raise ReferenceMismatch(f"reference mismatch: {len(self.specs)} clusters rebuilt, "
+                                    f"{len(recorded['membership'])} recorded in {source}")
+        for kind in ("membership", "basis"):
+            for i, (a, b) in enumerate(zip(mine[kind], recorded[kind])):
+                if a != b:
+                    what = "members" if kind == "membership" else "spectral basis"
+                    raise ReferenceMismatch(
+                        f"reference mismatch: cluster {i} {what} digest {a} differs from {b} recorded in "
+                        f"{source} (clustering, mesh or eigen-solver code or parameters changed); "
+                        f"refusing to report on this copy")
+
+
+def build_reference(points, params):
+    """Frame, clusters, spectral bases and normals of an original.
+
+    Parameters
+    ----------
+    points : (n, 3) float, the original in its own frame
+    params : WatermarkParams
+
+    Returns
+    -------
+    Reference
+    """
+    frame = frame_of(points)
+    centred = points - frame.centre
+    specs = plan_clusters(centred, params)
+    radii, bases = zip(*(cluster_basis(centred[s.members], params) for s in specs))
+    normals = None
+    if params.displacement == "normal":
+        normals = [cluster_normals(centred, s.members, params) for s in specs]
+    return Reference(frame.centre, frame.phi, specs, list(bases), normals, [float(r) for r in radii])
+
+
+def fingerprint_length(n_clusters, params):
+    """Chips of one recipient's fingerprint: cluster x axis x modulated coefficient."""
+    return int(n_clusters) * 3 * params.total_bits * params.chip_rate
+
+
+def fingerprint_displacement(reference, chips, params):
+    """Displacement of every point for one recipient's fingerprint (centred frame).
+
+    Each cluster's modulated coefficients get alpha * x (eq. 4 with the
+    recipient's chips in place of b' p), synthesised with its basis; with
+    ``displacement == "normal"`` only the motion along the normals is kept,
+    at the same RMS and peak.
+
+    Parameters
+    ----------
+    reference : Reference
+    chips : (fingerprint_length,) float in {-1, +1}
+    params : WatermarkParams
+
+    Returns
+    -------
+    moved : (n_points_in_clusters, 3) float, rows of ``np.concatenate(members)``
+    """
+    count = params.total_bits * params.chip_rate
+    amplitude = params.beta * reference.phi
+    out = []
+    for c, basis in enumerate(reference.bases):
+        x = chips[c * 3 * count:(c + 1) * 3 * count].reshape(3, count)
+        moved = basis[:, params.first_coefficient:params.first_coefficient + count] @ (amplitude * x.T)
+        if params.displacement == "normal":
+            cap = float(np.sqrt((moved**2).sum(axis=1).max()))
+            moved, _ = modulation.along_normals(moved, reference.normals[c], cap=cap)
+        out.append(moved)
+    return out
+
+
+def fingerprint_observation(estimate, specs, params):
+    """The weighted observation y of a suspect (see :func:`kernels.fingerprint.observation`)."""
+    coverage = [n / max(len(s.members), 1) for s, n in zip(specs, estimate["support"])]
+    return fingerprint.observation(estimate["deltas"], coverage, params.first_coefficient,
+                                   params.total_bits * params.chip_rate)
+
+
 def frame_of(points):
     """Centre, phi and diagonal of a point set, after checking it is a surface.
 
@@ -106,11 +221,33 @@ def frame_of(points):
     phi = float(sides.max())
     if phi == 0.0:
         raise WatermarkError("all points are identical (the bounding box has zero size)")
-    centred = points - points.mean(axis=0)
-    sv = np.linalg.svd(centred[:: max(1, len(points) // 20000)], compute_uv=False)
-    if sv[1] <= 1e-9 * sv[0]:
+    sample = points[:: max(1, len(points) // 20000)]
+    centred = sample - sample.mean(axis=0)
+    sv = np.linalg.svd(centred, compute_uv=False)
+    # Collinear up to the precision the coordinates were stored with: the
+    # spread across the best line is within the rounding of the file (float32,
+    # a LAS scale, a fixed number of decimals), whatever the float type here.
+    across = sv[1] / np.sqrt(len(sample))
+    if sv[1] <= 1e-9 * sv[0] or across <= 0.5 * _resolution(points):
         raise WatermarkError("the points are collinear; a surface is needed to carry a watermark")
     return Frame(centre=(lo + hi) / 2.0, phi=phi, diag=float(np.linalg.norm(sides)))
+
+
+def _resolution(points):
+    """Coarsest rounding step of the stored coordinates, over the three axes.
+
+    Per axis the larger of the smallest gap between distinct values (a grid,
+    e.g. a LAS scale) and the spacing of the float type the values fit in
+    (float32 or float64) at the axis's largest magnitude.
+    """
+    as32 = points.astype(np.float32).astype(np.float64)
+    eps = np.finfo(np.float32 if np.array_equal(as32, points) else np.float64).eps
+    steps = []
+    for axis in points.T:
+        values = np.unique(axis)
+        gap = float(np.diff(values).min()) if len(values) > 1 else 0.0
+        steps.append(max(gap, eps * float(np.abs(axis).max())))
+    return max(steps)
 
 
 def plan_clusters(points, params):
@@ -289,7 +426,7 @@ def embed_with_bases(centred, specs, bases, material, message_bits, params, phi)
     return moved
 
 
-def distortion(original, watermarked):
+def distortion(original, watermarked, tree=None, normals=None):
     """Distortion metrics relative to the bbox diagonal.
 
     RMSE of the point displacements (same order) and the symmetric Hausdorff
@@ -300,6 +437,10 @@ def distortion(original, watermarked):
     Parameters
     ----------
     original, watermarked : (n, 3) float
+    tree : scipy.spatial.cKDTree, optional
+        Of ``original`` (saves its construction when many copies are measured).
+    normals : (n, 3) float, optional
+        Unit normals of ``original`` at every point.
 
     Returns
     -------
@@ -307,10 +448,10 @@ def distortion(original, watermarked):
     """
     diag = float(np.linalg.norm(original.max(axis=0) - original.min(axis=0)))
     rmse = float(np.sqrt(((watermarked - original) ** 2).sum(axis=1).mean()))
-    d1, nearest = cKDTree(original).query(watermarked)
+    d1, nearest = (tree or cKDTree(original)).query(watermarked)
     d2, _ = cKDTree(watermarked).query(original)
-    normals = resampling.estimate_normals(original, at=nearest)
-    plane = np.einsum("ni,ni->n", watermarked - original[nearest], normals)
+    at = normals[nearest] if normals is not None else resampling.estimate_normals(original, at=nearest)
+    plane = np.einsum("ni,ni->n", watermarked - original[nearest], at)
     return {"rmse_rel_diag": rmse / diag, "hausdorff_rel_diag": float(max(d1.max(), d2.max())) / diag,
             "surface_rmse_rel_diag": float(np.sqrt((plane**2).mean())) / diag}
 
@@ -415,7 +556,19 @@ def _register(suspect, reference, spacing, method):
         return registration.Similarity(np.eye(3), 1.0, np.zeros(3))
     if method == "paper":
         return registration.register_covariance(suspect, reference, spacing=spacing)
-    return registration.register_robust(suspect, reference, spacing=spacing)
+    if method == "global":
+        from . import features   # open3d: imported only when used
+
+        return features.register_global(suspect, reference, spacing=spacing).transform
+    robust = registration.register_robust(suspect, reference, spacing=spacing)
+    if robust.fitness >= 0.8:
+        return robust
+    # a part of the asset, or the asset among clutter or junk: the principal
+    # frames mean little; let the feature-based global step compete
+    from . import features
+
+    found = features.register_global(suspect, reference, spacing=spacing)
+    return found.transform if found.score > features.overlap_score(robust, suspect, reference, spacing) else robust
 
 
 def _coefficient_differences(aligned, reference, specs, bases, detect_params, displacement):

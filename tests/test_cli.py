@@ -77,7 +77,7 @@ def test_nan_coordinates(tmp_path, secret_env, capsys):
 
 @pytest.mark.parametrize("name,pts,needle", [
     ("few.ply", sphere_patch(200), "fewer than the 320 spectral coefficients"),
-    ("same.ply", np.ones((3000, 3)), "all points are identical"),
+    ("same.ply", np.ones((3000, 3)), "repeat another point"),
     ("line.ply", np.outer(np.linspace(0, 1, 3000), [1.0, 2.0, 3.0]), "collinear"),
 ])
 def test_geometry_that_cannot_carry_a_payload(tmp_path, secret_env, capsys, name, pts, needle):
@@ -101,11 +101,28 @@ def test_missing_secret(tmp_path, small_model, monkeypatch, capsys):
 
 def test_secret_file_is_used_and_never_printed(tmp_path, small_model, monkeypatch, capsys):
     monkeypatch.delenv("POINTMARK_SECRET", raising=False)
-    (tmp_path / "key").write_text("s3cr3t-value\n")
+    (tmp_path / "key").write_text("s3cr3t-value-of-24-bytes\n")
     assert _embed(small_model, tmp_path / "o.ply", *SMALL, "--secret-file", str(tmp_path / "key"), "--json") == 0
     out = capsys.readouterr()
     assert "s3cr3t-value" not in out.out + out.err
-    assert len(json.loads(out.out)["key_fingerprint"]) == 16
+    assert "key_fingerprint" not in json.loads(out.out)      # only ledgers hold (salted) fingerprints
+
+
+def test_a_secret_given_where_a_path_belongs_is_not_echoed(tmp_path, small_model, monkeypatch, capsys):
+    monkeypatch.delenv("POINTMARK_SECRET", raising=False)
+    pasted = "Zq8-pasted-master-secret-value-41"
+    assert main(["embed", str(small_model), str(tmp_path / "out.ply"), "--key-id", "k", "--message", "1",
+                 "--secret-file", pasted]) == 2
+    out = capsys.readouterr()
+    assert "secret file" in out.err and "not shown" in out.err and len(out.err.strip().splitlines()) == 1
+    assert pasted not in out.out + out.err and not (tmp_path / "out.ply").exists()
+
+
+@pytest.mark.parametrize("secret", ["8bytes!!", "fifteen-bytes!!"])
+def test_a_short_secret_is_refused(tmp_path, small_model, monkeypatch, capsys, secret):
+    monkeypatch.setenv("POINTMARK_SECRET", secret)
+    _bad(tmp_path, capsys, ["embed", str(small_model), str(tmp_path / "out.ply"), "--key-id", "k",
+                            "--message", "1"], "POINTMARK_SECRET", "at least 16")
 
 
 def test_console_script_is_installed():

@@ -41,7 +41,7 @@ def prepared(shared_data, tmp_path_factory):
         sub = "meshes" if name == "bun_zipper" else "models"
         path = shared_data / sub / f"{name}.ply"
         params = replace(config.watermark_params(DEFAULT), **overrides)
-        out[name] = (str(path), evaluate.prepare_bases(path, params, folder / f"{name}.npz"), params)
+        out[name] = (str(path), evaluate.prepare_bases(path, evaluate._basis_params(params, params.n_coefficients), folder), params)
     return out
 
 
@@ -95,7 +95,7 @@ def test_unmarked_original_and_wrong_key_are_not_watermarked(model, prepared):
     dparams = config.detect_params(DEFAULT)
     estimate = estimate_differences(points[np.random.default_rng(3).permutation(len(points))], points,
                                     specs, bases, dparams, params.displacement)
-    for secret in (b"robustness-test-secret", b"another-secret"):
+    for secret in (b"robustness-test-secret", b"another-secret-of-24-b"):
         material = keys.derive_key_material(secret, "robustness")
         result = decode(estimate, specs, material, params, dparams)
         assert not result["detected"] and result["p_value"] > 1e-4

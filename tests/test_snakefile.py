@@ -66,7 +66,7 @@ def test_a_small_real_run_then_a_scan(workdir):
     assert res.returncode == 0, res.stdout + res.stderr
     found = ds.dataset(str(workdir / "out" / "workflow" / "scan"), format="parquet").to_table().to_pylist()
     assert [(r["candidate_asset"], r["recipient"], r["verdict"]) for r in found] == [("asset-1", "market-b", "match")]
-    table = ds.dataset(str(workdir / "out" / "workflow" / "manifests"), format="parquet").to_table()
+    table = ds.dataset(str(workdir / "out" / "workflow" / "manifests" / "copies"), format="parquet").to_table()
     assert table.num_rows == 6 and set(table["status"].to_pylist()) == {"ok"}
     assert len(list((workdir / "out" / "workflow" / "marked").rglob("*.*"))) == 6
     assert (workdir / "out" / "workflow" / "stamps" / "embed-1-of-2.done").exists()

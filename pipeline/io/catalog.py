@@ -20,7 +20,21 @@ from ..kernels.descriptor import d2_descriptor
 from .manifest import CATALOG_SCHEMA, write_rows
 from .pointcloud import FORMATS, InputError, format_of, read_points, sha256_file
 
-__all__ = ["Asset", "discover_assets", "catalogue_record", "write_catalogue", "read_catalogue"]
+__all__ = ["Asset", "discover_assets", "catalogue_record", "write_catalogue", "read_catalogue",
+           "check_recipient", "RECIPIENT_PATTERN"]
+
+# a recipient id is a folder name under output.dir: no separators, no "..", no leading dot
+RECIPIENT_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._@+-]{0,127}$"
+
+
+def check_recipient(name, where):
+    """Raise InputError unless ``name`` is a safe recipient id (names ``where`` it came from)."""
+    import re
+
+    if not isinstance(name, str) or not re.match(RECIPIENT_PATTERN, name) or ".." in name:
+        raise InputError(f"{where}: recipient {name!r} is not a valid id (letters, digits and . _ @ + -, "
+                         f"starting with a letter or digit, no '..', at most 128 characters)")
+    return name
 
 
 @dataclass(frozen=True)
@@ -78,8 +92,7 @@ def _from_catalogue_file(path, default_recipients):
     for i, row in enumerate(rows):
         if not row.get("asset_key") or not row.get("path"):
             raise InputError(f"{path}: row {i} lacks asset_key or path")
-        if row.get("status") not in (None, "ok"):
-            continue
+        # a row the catalogue build could not read stays in: the run fails it as a row
         file = Path(row["path"])
         file = file if file.is_absolute() else path.parent / file
         recipients = tuple(row.get("recipients") or ()) or default_recipients

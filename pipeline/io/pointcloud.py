@@ -1,10 +1,13 @@
 """Point-cloud files: read, check, and write atomically in the input's own format.
 
-PLY through :mod:`pipeline.io.ply` (every vertex property kept), PCD, XYZ
-and PTS through open3d, LAS and LAZ through laspy (header scale and offset
-and every point record kept).  Coordinates come back as float64 in the file's
-own frame, in file order.  Writes go to a temporary name in the target
-folder and are renamed into place; an input is never overwritten.
+PLY through :mod:`pipeline.io.ply` (every vertex property kept), PCD
+through :mod:`pipeline.io.pcd` (every field, its type and the encoding kept),
+XYZ and PTS through :mod:`pipeline.io.text` and OBJ through
+:mod:`pipeline.io.obj` (only coordinate tokens rewritten), LAS and LAZ
+through laspy (header scale and offset and every point record kept).
+Coordinates come back as float64 in the file's own frame, in file order.
+Writes go to a temporary name in the target folder and are renamed into
+place; an input is never overwritten.
 """
 
 from __future__ import annotations
@@ -17,12 +20,20 @@ from pathlib import Path
 
 import numpy as np
 
+from .obj import obj_from_points, read_obj, write_obj
+from .pcd import pcd_from_points, read_pcd, write_pcd
 from .ply import PlyError, read_ply, write_ply
+from .text import pts_from_points, read_pts, read_xyz, write_text, xyz_from_points
 
-__all__ = ["PointCloud", "InputError", "read_points", "write_points", "write_array",
+__all__ = ["PointCloud", "InputError", "read_points", "write_points", "write_array", "check_output",
+           "check_distinct",
            "atomic_write_bytes", "sha256_file", "FORMATS"]
 
-FORMATS = {".ply": "ply", ".pcd": "pcd", ".xyz": "xyz", ".pts": "pts", ".las": "las", ".laz": "laz"}
+FORMATS = {".ply": "ply", ".pcd": "pcd", ".xyz": "xyz", ".pts": "pts", ".las": "las", ".laz": "laz",
+           ".obj": "obj"}
+_READERS = {"pcd": read_pcd, "xyz": read_xyz, "pts": read_pts, "obj": read_obj}
+_WRITERS = {"pcd": write_pcd, "xyz": write_text, "pts": write_text, "obj": write_obj}
+_NEW_FILES = {"pcd": pcd_from_points, "xyz": xyz_from_points, "pts": pts_from_points, "obj": obj_from_points}
 
 
 class InputError(ValueError):
@@ -39,7 +50,7 @@ class PointCloud:
     path : pathlib.Path
     format : str
     native : object
-        PlyData, laspy.LasData or open3d.geometry.PointCloud.
+        PlyData, PcdData, TextTable (XYZ, PTS), ObjData or laspy.LasData.
     """
 
     points: np.ndarray
@@ -48,8 +59,8 @@ class PointCloud:
     native: object
 
     def faces(self):
-        """(f, 3) int triangles when the file is a PLY mesh, else empty."""
-        if self.format == "ply":
+        """(f, 3) int triangles when the file is a PLY or OBJ mesh, else empty."""
+        if self.format in ("ply", "obj"):
             return self.native.faces()
         return np.zeros((0, 3), dtype=np.int64)
 
@@ -88,7 +99,8 @@ def read_points(path):
         elif fmt in ("las", "laz"):
             native, points = _read_las(path)
         else:
-            native, points = _read_open3d(path, fmt)
+            native = _READERS[fmt](path.read_bytes())
+            points = native.points
     except (PlyError, OSError, ValueError) as exc:
         raise InputError(f"{path}: {exc}") from None
     _check(path, points)
@@ -104,27 +116,123 @@ def _check(path, points):
                          f"(first at index {int(np.flatnonzero(bad)[0])})")
 
 
+# A LAZ file expands to at most this many times its length (LASzip reaches
+# about 10): a larger declared point count is corrupt, and is refused before
+# anything is allocated for it.
+_LAZ_MAX_RATIO = 1000
+
+
+def check_output(source, output, *, same_format=True):
+    """Refuse an output path before any work is done on ``source``.
+
+    The output must name a file (not a folder) with a known suffix, in a
+    folder that exists or can be created and is writable, must not be the
+    source itself (also through a link), and with ``same_format`` must have
+    the source's format.
+
+    Raises
+    ------
+    InputError
+        Naming the output and the problem.
+    """
+    source, output = Path(source), Path(output)
+    if output.is_dir():
+        raise InputError(f"{output}: is a folder; give the output file's name")
+    fmt = format_of(output)
+    if same_format:
+        src_fmt = format_of(source)
+        if fmt != src_fmt:
+            raise InputError(f"{output}: output format {fmt} differs from the input format {src_fmt} "
+                             f"(use the suffix {Path(source).suffix})")
+    if output.exists() and source.exists() and os.path.samefile(output, source):
+        raise InputError(f"{output}: refusing to overwrite the original")
+    if output.resolve() == source.resolve():
+        raise InputError(f"{output}: refusing to overwrite the original")
+    parent = output.parent
+    while not parent.exists():
+        if parent.is_symlink():
+            raise InputError(f"{output}: its folder {parent} is a broken link")
+        parent = parent.parent
+    if not parent.is_dir():
+        raise InputError(f"{output}: {parent} is a file, not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(f"{output}: the folder {parent} is not writable")
+
+
+# Repeats beyond this share of the points are refused: a doubled or merged
+# export, not the few coincident points that rounding to a grid produces.
+MAX_REPEATED_SHARE = 0.01
+
+
+def check_distinct(path, points, max_share=MAX_REPEATED_SHARE):
+    """Refuse a point set in which many points are stored more than once.
+
+    Embedding moves every point by its own spectral coefficients: the copies
+    of a point are pulled apart, and a file in which every point is present
+    twice comes out as two interleaved surfaces whose payload does not read
+    back cleanly.  A few repeats (coordinates rounded to a LAS scale or to
+    float32 far from the origin) are harmless and are watermarked.
+
+    Raises
+    ------
+    InputError
+        When more than ``max_share`` of the points repeat another one.
+    """
+    _, first, inverse = np.unique(points, axis=0, return_index=True, return_inverse=True)
+    repeats = len(points) - len(first)
+    if repeats > max_share * len(points):
+        earliest = first[np.asarray(inverse).reshape(-1)]
+        twin = int(np.flatnonzero(earliest != np.arange(len(points)))[0])
+        original = int(earliest[twin])
+        raise InputError(f"{path}: {repeats} of {len(points)} points repeat another point's coordinates "
+                         f"(point {twin} = point {original}; at most {max_share:.0%} may); "
+                         f"remove duplicate points before watermarking")
+
+
 def _read_las(path):
     import laspy
 
+    size = path.stat().st_size
     try:
-        las = laspy.read(str(path))
+        with laspy.open(str(path)) as reader:
+            _check_las_header(reader.header, size)
+            las = reader.read()
+    except ValueError:
+        raise
     except Exception as exc:  # laspy raises many types for corrupt files
-        raise ValueError(f"cannot read LAS/LAZ: {exc}") from None
+        raise ValueError(f"cannot read LAS/LAZ: {' '.join(str(exc).split())}") from None
+    if len(las.points) != las.header.point_count:
+        raise ValueError(f"the header declares {las.header.point_count} points, "
+                         f"{len(las.points)} could be read")
     points = np.column_stack([np.asarray(las.x, dtype=np.float64),
                               np.asarray(las.y, dtype=np.float64),
                               np.asarray(las.z, dtype=np.float64)])
     return las, points
 
 
-def _read_open3d(path, fmt):
-    import open3d as o3d
-
-    cloud = o3d.io.read_point_cloud(str(path), format=fmt)
-    points = np.asarray(cloud.points, dtype=np.float64)
-    if len(points) == 0 and path.stat().st_size > 0:
-        raise ValueError(f"open3d could not read any point from this {fmt.upper()} file")
-    return cloud, points
+def _check_las_header(header, size):
+    """Declared point count and record size against the file's length (exact for LAS)."""
+    count = int(header.point_count)
+    record = int(header.point_format.size)
+    start = int(header.offset_to_point_data)
+    if header.are_points_compressed:
+        if count * record > _LAZ_MAX_RATIO * size:
+            raise ValueError(f"the header declares {count} points, more than a {size}-byte LAZ file can hold")
+        return
+    end = size
+    if getattr(header, "number_of_evlrs", 0) and getattr(header, "start_of_first_evlr", 0):
+        end = min(size, int(header.start_of_first_evlr))
+    held = end - start
+    need = count * record
+    if held < need:
+        raise ValueError(f"truncated: the header declares {count} points of {record} bytes "
+                         f"({need} bytes), the file holds {max(held, 0)} bytes of points")
+    if held > need:
+        extra = held - need
+        if extra % record == 0:
+            raise ValueError(f"the header declares {count} points, the file holds {count + extra // record}")
+        raise ValueError(f"the header declares {count} points of {record} bytes, "
+                         f"{extra} bytes more follow them")
 
 
 def write_points(cloud, points, path):
@@ -151,12 +259,11 @@ def write_points(cloud, points, path):
         raise InputError(f"{path}: output format {fmt} differs from the input format {cloud.format}")
     if fmt == "ply":
         atomic_write_bytes(path, write_ply(cloud.native, points))
+    elif fmt in _WRITERS:
+        atomic_write_bytes(path, _serialise(cloud, points, path))
     else:
         with _atomic_target(path) as tmp:
-            if fmt in ("las", "laz"):
-                _write_las(cloud.native, points, tmp)
-            else:
-                _write_open3d(cloud.native, points, tmp)
+            _write_las(cloud.native, points, tmp)
     return path
 
 
@@ -168,13 +275,11 @@ def _write_las(las, points, tmp):
     out.write(str(tmp))
 
 
-def _write_open3d(native, points, tmp):
-    import open3d as o3d
-
-    cloud = o3d.geometry.PointCloud(native)
-    cloud.points = o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64))
-    if not o3d.io.write_point_cloud(str(tmp), cloud, write_ascii=tmp.suffix != ".pcd"):
-        raise OSError(f"open3d could not write {tmp}")
+def _serialise(cloud, points, path):
+    try:
+        return _WRITERS[cloud.format](cloud.native, points)
+    except ValueError as exc:
+        raise InputError(f"{path}: {exc}") from None
 
 
 class _atomic_target:
@@ -193,6 +298,9 @@ class _atomic_target:
 
     def __exit__(self, exc_type, exc, tb):
         if exc_type is None:
+            umask = os.umask(0)
+            os.umask(umask)
+            os.chmod(self.tmp, 0o666 & ~umask)      # mkstemp's 0600 would survive the rename
             os.replace(self.tmp, self.path)
         else:
             self.tmp.unlink(missing_ok=True)
@@ -225,8 +333,6 @@ def write_array(folder, name, points, fmt, *, keep_existing=True):
     -------
     pathlib.Path
     """
-    import open3d as o3d
-
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     suffix = "ply" if fmt == "ply-ascii" else fmt
@@ -255,8 +361,5 @@ def write_array(folder, name, points, fmt, *, keep_existing=True):
         with _atomic_target(path) as tmp:
             las.write(str(tmp))
     else:
-        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-        with _atomic_target(path) as tmp:
-            if not o3d.io.write_point_cloud(str(tmp), cloud, write_ascii=fmt != "pcd"):
-                raise OSError(f"open3d could not write {path}")
+        atomic_write_bytes(path, _NEW_FILES[fmt](points))
     return path

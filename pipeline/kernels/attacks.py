@@ -13,6 +13,7 @@ from scipy.spatial import cKDTree
 __all__ = [
     "rotation_matrix", "similarity", "paper_similarity", "random_similarity", "noise_uniform",
     "noise_gaussian", "removal", "crop_plane", "crop", "quantize", "smooth", "shuffle", "apply_chain", "ATTACKS",
+    "outliers", "scene", "clutter", "random_rotation",
 ]
 
 
@@ -115,6 +116,132 @@ def shuffle(points, rng=None):
     return points[rng.permutation(len(points))]
 
 
+def random_rotation(rng=None):
+    """A uniformly random proper rotation, (3, 3) float."""
+    rng = np.random.default_rng(rng)
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q = q * np.sign(np.diag(r))
+    if np.linalg.det(q) < 0:
+        q[:, 0] *= -1.0
+    return q
+
+
+def outliers(points, fraction, rng=None):
+    """Add ``fraction * n`` points drawn uniformly in the bounding box (the originals kept, first).
+
+    Parameters
+    ----------
+    points : (n, 3) float
+    fraction : float
+        0.5 adds half as many outliers as there are points.
+
+    Returns
+    -------
+    (n + round(fraction * n), 3) float
+    """
+    rng = np.random.default_rng(rng)
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    extra = rng.uniform(lo, hi, (int(round(fraction * len(points))), 3))
+    return np.concatenate([points, extra])
+
+
+def scene(points, others, factor, rng=None, *, gap=0.15):
+    """Place the points among unrelated objects: clutter of ``factor`` times their count.
+
+    Each of ``others`` is centred, randomly rotated, scaled so its largest
+    bbox side is 0.6 to 1.4 times the asset's, and put next to the asset on a
+    random direction at a distance leaving about ``gap`` x phi between
+    bounding spheres (so objects surround but do not intersect it).  The
+    clutter points are split evenly over the objects, each subsampled (or
+    resampled with repeats jittered by 1e-4 phi) to its share.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+        The asset, in any frame.
+    others : list of (m_i, 3) float
+        Unrelated objects.
+    factor : float
+        Clutter points as a multiple of ``n``.
+
+    Returns
+    -------
+    (n + about factor * n, 3) float
+        The asset's points first, then the clutter.
+    """
+    rng = np.random.default_rng(rng)
+    phi = _phi(points)
+    centre = (points.min(axis=0) + points.max(axis=0)) / 2.0
+    radius = float(np.linalg.norm(points - centre, axis=1).max())
+    share = int(round(factor * len(points) / max(len(others), 1)))
+    placed = []
+    directions = []
+    for other in others:
+        other = np.asarray(other, dtype=np.float64)
+        o_centre = (other.min(axis=0) + other.max(axis=0)) / 2.0
+        obj = (other - o_centre) * (rng.uniform(0.6, 1.4) * phi / _phi(other))
+        obj = obj @ random_rotation(rng).T
+        idx = rng.choice(len(obj), share, replace=share > len(obj))
+        obj = obj[idx]
+        if share > len(other):
+            obj = obj + rng.normal(0.0, 1e-4 * phi, obj.shape)
+        r_obj = float(np.linalg.norm(obj, axis=1).max())
+        for _ in range(100):   # a direction away from the objects placed so far
+            d = rng.normal(size=3)
+            d /= np.linalg.norm(d)
+            if all(d @ e < 0.5 for e in directions):
+                break
+        directions.append(d)
+        placed.append(obj + centre + d * (radius + r_obj + gap * phi))
+    return np.concatenate([points, *placed]) if placed else points.copy()
+
+
+def _blob(rng, n):
+    v = rng.normal(size=(n, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    r = np.ones(n)
+    for _ in range(5):
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        r += 0.08 * np.sin(rng.uniform(1.0, 4.0) * np.pi * v @ axis + rng.uniform(0, 2 * np.pi))
+    return v * r[:, None] * rng.uniform(0.5, 1.0, 3)
+
+
+def _box(rng, n):
+    sides = rng.uniform(0.4, 1.0, 3)
+    face = rng.integers(0, 6, n)
+    p = rng.uniform(-0.5, 0.5, (n, 3))
+    p[np.arange(n), face % 3] = np.where(face < 3, -0.5, 0.5)
+    return p * sides
+
+
+def _cylinder(rng, n):
+    a = rng.uniform(0, 2 * np.pi, n)
+    h = rng.uniform(-0.5, 0.5, n)
+    r = rng.uniform(0.2, 0.4)
+    return np.column_stack([r * np.cos(a), r * np.sin(a), h])
+
+
+def clutter(points, factor, rng=None, *, n_objects=4):
+    """Place the points among procedural objects (bumpy blobs, boxes, cylinders): see :func:`scene`.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+    factor : float
+        Clutter points as a multiple of ``n`` (3 = three times the asset).
+
+    Returns
+    -------
+    (about (1 + factor) * n, 3) float, the asset's points first
+    """
+    rng = np.random.default_rng(rng)
+    makers = [_blob, _box, _cylinder]
+    share = max(int(round(factor * len(points) / n_objects)), 10)
+    others = [makers[i % 3](rng, share) for i in range(n_objects)]
+    return scene(points, others, factor, rng)
+
+
 # name -> (function, takes a strength)
 ATTACKS = {
     "similarity": (paper_similarity, False),
@@ -126,6 +253,8 @@ ATTACKS = {
     "quantize": (quantize, True),
     "smooth": (smooth, True),
     "shuffle": (shuffle, False),
+    "outliers": (outliers, True),
+    "clutter": (clutter, True),
 }
 
 

@@ -13,8 +13,12 @@ import hmac
 
 import numpy as np
 
-__all__ = ["derive_key_material", "fingerprint", "pseudo_random_signs", "key_permutation",
-           "recipient_payload"]
+__all__ = ["derive_key_material", "key_fingerprint", "new_salt", "pseudo_random_signs", "key_permutation",
+           "recipient_payload", "MIN_SECRET_BYTES"]
+
+MIN_SECRET_BYTES = 16
+# scrypt cost of the public key fingerprint: about 50 ms per guess on one core
+_SCRYPT = {"n": 1 << 14, "r": 8, "p": 1}
 
 
 def derive_key_material(secret, key_id):
@@ -29,14 +33,37 @@ def derive_key_material(secret, key_id):
     -------
     bytes, length 32
     """
-    if not secret:
-        raise ValueError("the master secret is empty")
+    if len(secret) < MIN_SECRET_BYTES:
+        raise ValueError(f"the master secret is {len(secret)} bytes; at least {MIN_SECRET_BYTES} are needed")
     return hmac.new(secret, b"pointmark/key/" + key_id.encode("utf-8"), hashlib.sha256).digest()
 
 
-def fingerprint(secret):
-    """A short public fingerprint of the master secret (16 hex digits)."""
-    return hashlib.sha256(b"pointmark/fingerprint/" + secret).hexdigest()[:16]
+def key_fingerprint(secret, salt):
+    """Public fingerprint of the master secret: 16 hex digits of salted scrypt.
+
+    Slow on purpose (about 50 ms per guess) and salted per deployment, so a
+    manifest does not make a weak secret cheap to find.
+
+    Parameters
+    ----------
+    secret : bytes
+    salt : str
+        Hex salt of the deployment (the ledger's).
+
+    Returns
+    -------
+    str
+    """
+    digest = hashlib.scrypt(secret, salt=b"pointmark/key-fingerprint/" + bytes.fromhex(salt),
+                            dklen=8, maxmem=64 << 20, **_SCRYPT)
+    return digest.hex()
+
+
+def new_salt():
+    """A fresh random deployment salt (32 hex digits)."""
+    import secrets
+
+    return secrets.token_hex(16)
 
 
 def _stream(material, label, n_bytes):

@@ -32,6 +32,11 @@ _CRC_POLYS = {8: 0x07, 16: 0x1021}
 def hex_to_bits(message, n_bits):
     """Payload bits of a HEX string, most significant bit first.
 
+    Strict: only the digits 0-9, a-f, A-F, optionally after ``0x``; no sign,
+    no spaces, no underscores, at most ``ceil(n_bits / 4)`` digits.  Fewer
+    digits are a number padded with leading zeros (``1`` is ``00000001`` for
+    32 bits); the value must fit in ``n_bits``.
+
     Parameters
     ----------
     message : str
@@ -41,12 +46,24 @@ def hex_to_bits(message, n_bits):
     Returns
     -------
     (n_bits,) uint8
+
+    Raises
+    ------
+    ValueError
+        Saying what is wrong with the message.
     """
-    text = message.lower().removeprefix("0x")
-    try:
-        value = int(text, 16)
-    except ValueError:
-        raise ValueError(f"message {message!r} is not hexadecimal") from None
+    text = message[2:] if message[:2] in ("0x", "0X") else message
+    digits = (n_bits + 3) // 4
+    if not text:
+        raise ValueError(f"message {message!r} is empty; give {digits} hex digits")
+    bad = [c for c in text if c not in "0123456789abcdefABCDEF"]
+    if bad:
+        raise ValueError(f"message {message!r} is not hexadecimal (character {bad[0]!r}); "
+                         f"use only 0-9 and a-f, no sign, spaces or underscores")
+    if len(text) > digits:
+        raise ValueError(f"message {message!r} has {len(text)} hex digits, more than the {digits} of "
+                         f"the payload capacity n_bits={n_bits}; shorten it or raise n_bits")
+    value = int(text, 16)
     if value >= 1 << n_bits:
         raise ValueError(
             f"message {message!r} needs {value.bit_length()} bits, more than the payload "

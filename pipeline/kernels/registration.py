@@ -23,7 +23,8 @@ from scipy.spatial import cKDTree
 
 __all__ = [
     "Similarity", "apply", "umeyama", "principal_frame", "register_covariance",
-    "icp_similarity", "register_robust",
+    "icp_similarity", "register_robust", "umeyama_batch", "ransac_similarity", "overlap",
+    "refine_part",
 ]
 
 
@@ -236,3 +237,271 @@ def _plausible(scale, expected, factor=2.0):
     original, where every point then "fits"; such a fit is rejected.
     """
     return any(e / factor < scale < e * factor for e in expected)
+
+
+# ---------------------------------------------------------------------------
+# Global registration from feature correspondences, scale unknown (issue 13)
+# ---------------------------------------------------------------------------
+
+def umeyama_batch(source, target):
+    """Umeyama's similarity for many small correspondence sets at once.
+
+    Parameters
+    ----------
+    source, target : (h, k, 3) float
+        ``h`` sets of ``k`` corresponding points (k >= 3).
+
+    Returns
+    -------
+    rotation : (h, 3, 3) float, proper
+    scale : (h,) float
+    translation : (h, 3) float
+        Mapping ``source`` onto ``target``: ``scale * R x + t``.
+    """
+    mu_s = source.mean(axis=1, keepdims=True)
+    mu_t = target.mean(axis=1, keepdims=True)
+    xs = source - mu_s
+    xt = target - mu_t
+    cov = np.einsum("hki,hkj->hij", xt, xs) / source.shape[1]
+    u, d, vt = np.linalg.svd(cov)
+    sign = np.sign(np.linalg.det(u) * np.linalg.det(vt))
+    sign[sign == 0] = 1.0
+    flip = np.ones((len(source), 3))
+    flip[:, 2] = sign
+    rotation = np.einsum("hij,hj,hjk->hik", u, flip, vt)
+    var_s = (xs**2).sum(axis=(1, 2)) / source.shape[1]
+    scale = (d * flip).sum(axis=1) / np.maximum(var_s, 1e-300)
+    translation = mu_t[:, 0] - scale[:, None] * np.einsum("hij,hj->hi", rotation, mu_s[:, 0])
+    return rotation, scale, translation
+
+
+def _triplets(source, n_samples, rng, local_radius):
+    """Index triplets into the correspondences: half global, half local.
+
+    A local triplet takes its second and third correspondences from the grid
+    cell (side ``local_radius``, in source space) of the first.
+    """
+    n = len(source)
+    first = rng.integers(0, n, n_samples)
+    out = np.empty((n_samples, 3), dtype=np.int64)
+    out[:, 0] = first
+    n_local = n_samples // 2 if local_radius and local_radius > 0 else 0
+    out[n_local:, 1:] = rng.integers(0, n, (n_samples - n_local, 2))
+    if n_local:
+        cell = np.floor((source - source.min(axis=0)) / local_radius).astype(np.int64)
+        _, label, count = np.unique(cell, axis=0, return_inverse=True, return_counts=True)
+        label = label.reshape(-1)
+        order = np.argsort(label, kind="stable")
+        start = np.concatenate([[0], np.cumsum(count)[:-1]])
+        lab = label[first[:n_local]]
+        pick = (rng.random((n_local, 2)) * count[lab][:, None]).astype(np.int64)
+        out[:n_local, 1:] = order[start[lab][:, None] + pick]
+    return out
+
+
+def ransac_similarity(source, target, *, threshold, iterations=20000, rng=0, local_radius=None,
+                      scale_range=(1e-3, 1e3), edge_tolerance=0.15, min_edge=None, max_hypotheses=3000,
+                      weights=None, score_points=3000, top=1):
+    """Similarity (scale included) from putative correspondences, by RANSAC on 3-point samples.
+
+    Each sample of three correspondences gives a similarity in closed form
+    (Umeyama).  Samples are first pruned, TEASER-style, by scale consistency:
+    the three ratios target-edge / source-edge must agree within
+    ``edge_tolerance`` (a wrong correspondence rarely preserves all three),
+    lie in ``scale_range``, and source edges must be longer than
+    ``min_edge``.  Surviving hypotheses are scored by their (weighted)
+    inliers (correspondences mapped within ``threshold`` of their target);
+    the best is refitted on its inliers up to three times.  With
+    ``local_radius``, half of the samples pick their second and third
+    correspondences within that distance of the first (in source space), so
+    that a part occupying a small share of a scene is still sampled.
+
+    Parameters
+    ----------
+    source, target : (c, 3) float
+        Putative correspondences, row by row (many of them wrong).
+    threshold : float
+        Inlier distance, in target units.
+    iterations : int
+        Triplets drawn.
+    rng : int or numpy.random.Generator
+    local_radius : float, optional
+        Neighbourhood of the local samples, in source units (None: all global).
+    scale_range : (float, float)
+        Admissible target / source scales.
+    edge_tolerance : float
+        Largest relative spread of the three edge ratios of a sample.
+    min_edge : float, optional
+        Shortest admissible source edge (default: 1 % of the source's extent).
+    max_hypotheses : int
+        Most consistent samples scored.
+    weights : (c,) float, optional
+        Weight of each correspondence in the inlier score (default 1).  With
+        ``1 / (correspondences sharing its target)``, a hypothesis that
+        collapses many source points onto one target point scores low.
+    score_points : int
+        Hypotheses are ranked on this many correspondences (a seeded subset);
+        the best ``max(20, 4 * top)`` are rescored on all.
+    top : int
+        How many distinct hypotheses to return (best first).  A later
+        check (ICP, overlap) often tells the right one better than the
+        count of inliers.
+
+    Returns
+    -------
+    transform : Similarity or None
+        Maps source onto target; ``fitness`` is the share of correspondences
+        that are inliers, ``residual`` their RMS distance.  ``None`` when no
+        sample was consistent.
+    inliers : (c,) bool
+        With ``top > 1``, a list of up to ``top`` such pairs instead.
+    """
+    source = np.asarray(source, dtype=np.float64)
+    target = np.asarray(target, dtype=np.float64)
+    n = len(source)
+    if n < 3:
+        return [] if top > 1 else (None, np.zeros(n, dtype=bool))
+    rng = np.random.default_rng(rng)
+    w = np.ones(n) if weights is None else np.asarray(weights, dtype=np.float64)
+    if min_edge is None:
+        min_edge = 0.01 * float(np.linalg.norm(source.max(axis=0) - source.min(axis=0)))
+    tri = _triplets(source, int(iterations), rng, local_radius)
+    s = source[tri]                                      # (h, 3, 3)
+    t = target[tri]
+    es = np.linalg.norm(s[:, [0, 1, 2]] - s[:, [1, 2, 0]], axis=2)
+    et = np.linalg.norm(t[:, [0, 1, 2]] - t[:, [1, 2, 0]], axis=2)
+    ok = (es > min_edge).all(axis=1) & (et > 0).all(axis=1)
+    ratio = np.where(ok[:, None], et / np.where(es > 0, es, 1.0), 1.0)
+    ok &= ratio.max(axis=1) <= ratio.min(axis=1) * (1.0 + edge_tolerance)
+    mean_ratio = ratio.mean(axis=1)
+    ok &= (mean_ratio > scale_range[0]) & (mean_ratio < scale_range[1])
+    # degenerate (nearly collinear) samples give unstable rotations
+    area = np.linalg.norm(np.cross(s[:, 1] - s[:, 0], s[:, 2] - s[:, 0]), axis=1)
+    ok &= area > 0.2 * es.max(axis=1) ** 2 * 0.5
+    keep = np.flatnonzero(ok)
+    if len(keep) == 0:
+        return [] if top > 1 else (None, np.zeros(n, dtype=bool))
+    if len(keep) > max_hypotheses:
+        keep = rng.choice(keep, max_hypotheses, replace=False)
+    rot, scale, trans = umeyama_batch(s[keep], t[keep])
+    thr2 = threshold**2
+    # score every hypothesis on a subset of the correspondences, the best few on all
+    probe = np.arange(n) if n <= score_points else np.sort(rng.choice(n, score_points, replace=False))
+    scores = np.empty(len(keep))
+    for lo in range(0, len(keep), 256):
+        sl = slice(lo, lo + 256)
+        moved = scale[sl, None, None] * np.einsum("hij,cj->hci", rot[sl], source[probe]) + trans[sl, None, :]
+        inside = ((moved - target[probe][None]) ** 2).sum(axis=2) < thr2      # (h, c)
+        scores[sl] = inside.astype(np.float64) @ w[probe]
+    rescored = []
+    for i in np.argsort(-scores)[:max(20, 4 * top)]:
+        moved = scale[i] * source @ rot[i].T + trans[i]
+        rescored.append((float(w[((moved - target) ** 2).sum(axis=1) < thr2].sum()), int(i)))
+    rescored.sort(key=lambda x: -x[0])
+    results = []
+    for _, i in rescored:
+        current = Similarity(rot[i], float(scale[i]), trans[i])
+        for _ in range(3):
+            dist2 = ((apply(current, source) - target) ** 2).sum(axis=1)
+            inliers = dist2 < thr2
+            if inliers.sum() < 3:
+                break
+            current = umeyama(source[inliers], target[inliers])
+        dist2 = ((apply(current, source) - target) ** 2).sum(axis=1)
+        inliers = dist2 < thr2
+        if any(np.mean(np.sum((apply(current, source[probe]) - apply(r, source[probe])) ** 2, axis=1)) < thr2
+               for r, _ in results):
+            continue   # the same hypothesis again
+        residual = float(np.sqrt(dist2[inliers].mean())) if inliers.any() else float("inf")
+        results.append((Similarity(current.rotation, current.scale, current.translation,
+                                   float(inliers.mean()), residual), inliers))
+        if len(results) == top:
+            break
+    return results if top > 1 else results[0]
+
+
+def overlap(aligned, tree, original_sample, cut):
+    """Quality of a registration seen from both sides.
+
+    Parameters
+    ----------
+    aligned : (n, 3) float
+        Suspect points after registration.
+    tree : cKDTree
+        Over the original points.
+    original_sample : (k, 3) float
+        Original points at which coverage is measured (a subsample).
+    cut : float
+        Inlier distance, in original units.
+
+    Returns
+    -------
+    fitness : float
+        Share of suspect points within ``cut`` of the original.
+    coverage : float
+        Share of ``original_sample`` within ``cut`` of a suspect point.
+    residual : float
+        RMS distance of the suspect inliers.
+    """
+    dist, _ = tree.query(aligned, distance_upper_bound=cut)
+    inside = dist < cut
+    fitness = float(inside.mean()) if len(aligned) else 0.0
+    residual = float(np.sqrt((dist[inside] ** 2).mean())) if inside.any() else float("inf")
+    if inside.any():
+        back, _ = cKDTree(aligned[inside]).query(original_sample, distance_upper_bound=cut)
+        coverage = float(np.isfinite(back).mean())
+    else:
+        coverage = 0.0
+    return fitness, coverage, residual
+
+
+def refine_part(suspect, tree, original, start, *, spacing, iterations=30, widths=(8.0, 3.0)):
+    """Trimmed ICP with scale for partial overlap in both directions.
+
+    The suspect may be part of the original, or contain it among clutter, so
+    no quantile of the distances is a safe cut: pairs are kept within a fixed
+    distance that narrows from ``widths[0]`` to ``widths[-1]`` times the
+    spacing (a coarse start may be a few spacings off).  Each step is the
+    Umeyama update of :func:`icp_similarity`; nearest-neighbour queries are
+    bounded by the cut, so far clutter costs little.
+
+    Parameters
+    ----------
+    suspect : (n, 3) float
+    tree : cKDTree over ``original``
+    original : (m, 3) float
+    start : Similarity
+    spacing : float
+        Median nearest-neighbour distance of the original.
+    iterations : int
+        Most steps per width.
+    widths : sequence of float
+        Cuts, in spacings.
+
+    Returns
+    -------
+    Similarity
+        ``fitness``: share of suspect points within 3 spacings of the
+        original; ``residual``: their RMS distance.
+    """
+    current = start
+    for width in widths:
+        cut = width * spacing
+        previous = np.inf
+        for _ in range(iterations):
+            moved = apply(current, suspect)
+            dist, idx = tree.query(moved, distance_upper_bound=cut)
+            keep = np.isfinite(dist)
+            if keep.sum() < 4:
+                break
+            step = umeyama(moved[keep], original[idx[keep]])
+            current = _compose(step, current)
+            err = float(np.sqrt((dist[keep] ** 2).mean()))
+            if previous - err < 1e-4 * spacing:
+                break
+            previous = err
+    dist, _ = tree.query(apply(current, suspect), distance_upper_bound=3.0 * spacing)
+    inside = np.isfinite(dist)
+    fitness = float(inside.mean())
+    residual = float(np.sqrt((dist[inside] ** 2).mean())) if inside.any() else float("inf")
+    return Similarity(current.rotation, current.scale, current.translation, fitness, residual)

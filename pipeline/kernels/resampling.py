@@ -31,7 +31,11 @@ __all__ = [
 
 
 def nearest_spacing(points):
-    """Distance from each point to its nearest other point.
+    """Distance from each point to its nearest other point at a different place.
+
+    Repeated points (the same coordinates stored twice) do not count as
+    neighbours: the spacing of a file whose every point is present twice is
+    the spacing of its distinct points, never 0.
 
     Parameters
     ----------
@@ -40,9 +44,14 @@ def nearest_spacing(points):
     Returns
     -------
     (n,) float
+        0 only when all points are identical.
     """
-    dist, _ = cKDTree(points).query(points, k=2)
-    return dist[:, 1]
+    points = np.asarray(points, dtype=np.float64)
+    unique, inverse = np.unique(points, axis=0, return_inverse=True)
+    if len(unique) < 2:
+        return np.zeros(len(points))
+    dist, _ = cKDTree(unique).query(unique, k=2)
+    return dist[np.asarray(inverse).reshape(-1), 1]
 
 
 def estimate_normals(points, k=16, at=None):

@@ -1,9 +1,16 @@
-"""Run the catalogue job: plan, resume, execute on Dask (or serially), write manifests.
+"""Run the catalogue job: plan against the ledger, execute on Dask (or serially), append rows.
 
-The graph per asset: ``plan_asset`` -> one ``embed_cluster_task`` per cluster
--> ``assemble_asset``.  Cluster tasks are submitted when their asset's plan
-arrives, so the eigen-decompositions of all clusters of all assets run in
-parallel across workers; no task ever waits on another from inside.
+Per asset the graph is ``plan_asset`` -> one ``cluster_task`` per cluster ->
+``issue_task`` per chunk of recipients.  Cluster tasks are submitted when
+their asset's plan arrives, so the eigendecompositions of all clusters of
+all assets run in parallel across workers.
+
+The ledger is append-only: a run issues only copies it does not hold yet.
+Changed parameters, key, tool version or source bytes start a new
+generation of the asset (new file names, new rows); earlier rows stay.
+Each asset is locked while it is planned and issued, and the plan is
+redone under the locks, so concurrent runs never issue the same copy twice
+or lose a row.
 """
 
 from __future__ import annotations
@@ -13,16 +20,17 @@ import json
 import logging
 import os
 import sys
-import time
+import uuid
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
 from pathlib import Path
 
 from .. import __version__
-from ..config import watermark_params
-from ..io.catalog import discover_assets
-from ..io.manifest import EMBED_SCHEMA, manifest_path, read_rows, write_rows
-from ..io.pointcloud import sha256_file
+from ..config import ConfigError, watermark_params
+from ..io.basis_store import BasisStore
+from ..io.catalog import check_recipient, discover_assets
+from ..io.ledger import Ledger
+from ..io.pointcloud import InputError, sha256_file
+from ..io.secrets import without_secret_env
 from ..kernels import keys
 from ..watermark import params_record
 from . import tasks
@@ -30,12 +38,15 @@ from .progress import Progress
 
 log = logging.getLogger("pointmark.run")
 
-__all__ = ["Job", "plan_job", "run_job", "start_client"]
+__all__ = ["Job", "plan_job", "run_job", "start_client", "PINNED_THREADS", "CHUNK"]
 
 # BLAS and OpenMP threads of every worker: one, so processes do not oversubscribe cores
 PINNED_THREADS = {name: "1" for name in (
     "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS",
     "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS")}
+
+CHUNK = 32   # recipients per issue task
+MARK = "fingerprint"
 
 
 @dataclass
@@ -43,8 +54,12 @@ class AssetJob:
     key: str
     path: Path
     source_sha256: str
-    outputs: list                  # (recipient, payload, output path)
-    skip: bool = False
+    generation: int = 1
+    generation_id: str = ""
+    items: list = field(default_factory=list)     # (recipient, output path) to issue
+    issued: int = 0                               # copies of this generation already in the ledger
+    missing: list = field(default_factory=list)   # issued copies whose file is gone
+    error: str | None = None
 
 
 @dataclass
@@ -52,23 +67,37 @@ class Job:
     run_id: str
     key_id: str
     key_fingerprint: str
+    key_salt: str
     material: bytes = field(repr=False)
     params: object = None
-    manifests: Path = None
+    ledger: Ledger = None
+    store: Path = None
     assets: list = field(default_factory=list)
+    ledger_version: str = ""
+    replan: object = field(default=None, repr=False)
+
+    @property
+    def manifests(self):
+        return self.ledger.folder
 
     @property
     def todo(self):
-        return [a for a in self.assets if not a.skip]
+        return [a for a in self.assets if a.items or a.error]
 
 
-def _run_id(params, key_id, fingerprint):
-    text = json.dumps({"params": params_record(params), "key_id": key_id, "fp": fingerprint,
-                       "version": __version__}, sort_keys=True)
+def _generation_id(params, key_id, fingerprint, source_sha256):
+    text = json.dumps({"params": params_record(params), "key_id": key_id, "fp": fingerprint, "mark": MARK,
+                       "source": source_sha256, "version": __version__}, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def plan_job(cfg, secret, *, force=False, shard=None):
+def recipients_of(asset, configured, where):
+    """The asset's recipients: its catalogue's, then the config's; "default" if none."""
+    names = list(dict.fromkeys([*asset.recipients, *configured])) or ["default"]
+    return [check_recipient(r, where) for r in names]
+
+
+def plan_job(cfg, secret, *, force=False, shard=None, create=True):
     """Everything the run will do, without doing it.
 
     Parameters
@@ -77,9 +106,11 @@ def plan_job(cfg, secret, *, force=False, shard=None):
         Validated config.
     secret : bytes
     force : bool
-        Redo assets whose manifest says they are done.
+        Also re-write issued copies whose file is missing (same bytes).
     shard : (int, int), optional
         (i, n): only assets i, i + n, i + 2n, ... (sorted by key).
+    create : bool
+        Create the ledger's deployment salt if missing (False for a dry run).
 
     Returns
     -------
@@ -88,71 +119,77 @@ def plan_job(cfg, secret, *, force=False, shard=None):
     params = watermark_params(cfg)
     key_id = cfg["key"]["id"]
     if not key_id:
-        from ..config import ConfigError
         raise ConfigError("config: key.id: a key id is needed for a catalogue run")
-    fingerprint = keys.fingerprint(secret)
     if not cfg["catalog"]["source"]:
-        from ..config import ConfigError
         raise ConfigError("config: catalog.source: name a folder, glob or catalogue file")
-    job = Job(_run_id(params, key_id, fingerprint), key_id, fingerprint,
-              keys.derive_key_material(secret, key_id), params, Path(cfg["output"]["manifests"]))
-    assets = discover_assets(cfg["catalog"]["source"], default_recipients=cfg["recipients"])
+    ledger = Ledger(cfg["output"]["manifests"])
+    version = ledger.version()
+    salt = ledger.salt(create=create) or "0" * 32
+    fingerprint = keys.key_fingerprint(secret, salt)
+    store = Path(cfg["output"]["bases"] or ledger.folder / "bases")
+    job = Job(uuid.uuid4().hex[:16], key_id, fingerprint, salt, keys.derive_key_material(secret, key_id), params,
+              ledger, store, ledger_version=version)
+    job.replan = lambda: plan_job(cfg, secret, force=force, shard=shard, create=create)
+    assets = discover_assets(cfg["catalog"]["source"])
     if shard is not None:
         assets = assets[shard[0]::shard[1]]
-    out_dir = Path(cfg["output"]["dir"])
+    issued = {}
+    for row in ledger.rows():
+        issued.setdefault(row["asset_key"], []).append(row)
     for asset in assets:
-        outputs = [(r, keys.recipient_payload(asset.key, r, params.n_bits),
-                    out_dir / r / f"{asset.key}{asset.path.suffix.lower()}") for r in asset.recipients]
-        source_sha = sha256_file(asset.path) if asset.path.is_file() else ""
-        item = AssetJob(asset.key, asset.path, source_sha, outputs)
-        item.skip = not force and _is_done(job, item)
-        job.assets.append(item)
+        recipients = recipients_of(asset, cfg["recipients"], cfg["catalog"]["source"])
+        job.assets.append(_plan_asset(job, asset, recipients, issued.get(asset.key, []), Path(cfg["output"]["dir"]),
+                                      force))
     return job
 
 
-def _is_done(job, item):
-    rows = read_rows(manifest_path(job.manifests, item.key))
-    if len(rows) != len(item.outputs) or not item.source_sha256:
-        return False
-    want = {(r, p, str(o)) for r, p, o in item.outputs}
-    have = {(row["recipient"], row["payload"], row["output_path"]) for row in rows}
-    return want == have and all(
-        row["status"] == "ok" and row["run_id"] == job.run_id
-        and row["source_sha256"] == item.source_sha256
-        and Path(row["output_path"]).is_file() and sha256_file(row["output_path"]) == row["output_sha256"]
-        for row in rows)
+def _plan_asset(job, asset, recipients, rows, out_dir, force):
+    item = AssetJob(asset.key, asset.path, "")
+    if not asset.path.is_file():
+        item.error = f"{asset.path}: no such file"
+        item.items = [(r, None) for r in recipients]
+        return item
+    item.source_sha256 = sha256_file(asset.path)
+    item.generation_id = _generation_id(job.params, job.key_id, job.key_fingerprint, item.source_sha256)
+    same = [r for r in rows if r["generation_id"] == item.generation_id]
+    item.generation = same[0]["generation"] if same else 1 + max((r["generation"] for r in rows), default=0)
+    done = {r["recipient"] for r in same}
+    item.issued = len(done)
+    item.missing = sorted({r["recipient"] for r in same if not Path(r["output_path"]).is_file()})
+    suffix = asset.path.suffix.lower()
+    name = asset.key if item.generation == 1 else f"{asset.key}.g{item.generation}"
+    redo = set(item.missing) if force else set()
+    item.items = [(r, out_dir / r / f"{name}{suffix}") for r in recipients if r not in done or r in redo]
+    return item
 
 
 def _row_base(job, item):
     params = params_record(job.params)
-    seeds = params.pop("seeds")
-    return {"run_id": job.run_id, "asset_key": item.key, "source_path": str(item.path),
-            "source_sha256": item.source_sha256, "key_id": job.key_id,
-            "key_fingerprint": job.key_fingerprint, "seeds_json": json.dumps(seeds), **params,
+    return {"run_id": job.run_id, "generation": item.generation, "generation_id": item.generation_id,
+            "asset_key": item.key, "source_path": str(item.path), "source_sha256": item.source_sha256,
+            "mark": MARK, "key_id": job.key_id, "key_fingerprint": job.key_fingerprint, "key_salt": job.key_salt,
+            "params_json": json.dumps(params, sort_keys=True),
+            **{k: params[k] for k in ("n_bits", "chip_rate", "beta", "valence", "n_clusters", "cluster_size",
+                                      "chip_layout", "displacement")},
+            "reference_key": BasisStore(job.store).key(item.source_sha256, job.params),
             "tool_version": __version__}
 
 
-def _write_manifest(job, item, rows):
-    now = datetime.now(timezone.utc).replace(microsecond=0)
-    write_rows(manifest_path(job.manifests, item.key), [{**r, "created_at": now} for r in rows],
-               EMBED_SCHEMA)
-
-
-def _failed_rows(job, item, error):
-    return [{**_row_base(job, item), "output_path": str(o), "recipient": r, "payload": p,
-             "status": "failed", "error": error} for r, p, o in item.outputs]
+def _failed_rows(job, item, error, items=None):
+    return [{**_row_base(job, item), "recipient": r, "output_path": None if o is None else str(o),
+             "status": "failed", "error": error} for r, o in (items if items is not None else item.items)]
 
 
 def _error_text(exc):
-    return f"{type(exc).__name__}: {exc}" if not isinstance(exc, ValueError) else str(exc)
+    return str(exc) if isinstance(exc, ValueError) else f"{type(exc).__name__}: {exc}"
 
 
 def start_client(cfg):
     """A Dask client: to ``dask.address`` if set, else on a new LocalCluster.
 
-    LocalCluster workers are spawned processes with one thread each and BLAS
-    threads pinned to one (SciPy's ARPACK holds a process-wide lock, and
-    open3d must not be forked).
+    LocalCluster workers are spawned processes with one thread each, BLAS
+    threads pinned to one (SciPy's ARPACK holds a process-wide lock; open3d
+    must not be forked), and without the master secret in their environment.
     """
     import dask
     from distributed import Client, LocalCluster
@@ -167,96 +204,116 @@ def start_client(cfg):
                      "distributed.worker.profile.enabled": False})
     n_workers = settings["n_workers"] or os.cpu_count() or 1
     logging.getLogger("distributed").setLevel(logging.WARNING)
-    cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
-                           dashboard_address=":0", memory_limit=settings["memory_limit"],
-                           silence_logs=logging.CRITICAL)
+    with without_secret_env():
+        cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
+                               dashboard_address=":0", memory_limit=settings["memory_limit"],
+                               silence_logs=logging.CRITICAL)
     return Client(cluster), cluster
 
 
 def run_job(job, cfg, *, serial=False, progress=None):
-    """Execute a planned job; write one manifest file per asset.
+    """Execute a planned job under the assets' locks; append one ledger part per asset.
 
     Returns
     -------
     dict
-        Counts: ok, failed, skipped (assets).
+        Counts of assets: ok, failed, skipped (nothing to issue).
     """
-    progress = progress or Progress.for_stream(cfg["dask"]["progress"], sys.stderr)
-    todo = job.todo
-    progress.start(len(todo), job.params.n_clusters)
-    if serial:
-        results = _run_serial(job, todo, progress)
-    else:
-        results = _run_dask(job, todo, cfg, progress)
-    progress.finish()
+    with job.ledger.lock([a.key for a in job.assets]):
+        if job.replan is not None and job.ledger.version() != job.ledger_version:
+            job = job.replan()          # another run added rows since this one was planned
+        job.ledger.salt(create=True)
+        progress = progress or Progress.for_stream(cfg["dask"]["progress"], sys.stderr)
+        todo = job.todo
+        progress.start(len(todo), job.params.n_clusters)
+        results = (_run_serial if serial else _run_dask)(job, todo, cfg, progress)
+        progress.finish()
     counts = {"ok": 0, "failed": 0, "skipped": len(job.assets) - len(todo)}
     for item in todo:
         counts["ok" if all(r["status"] == "ok" for r in results[item.key]) else "failed"] += 1
     return counts
 
 
-def _run_serial(job, todo, progress):
+def _chunks(items):
+    return [items[a:a + CHUNK] for a in range(0, len(items), CHUNK)]
+
+
+def _finish_asset(job, item, rows, results, progress):
+    results[item.key] = rows
+    job.ledger.append(rows)
+    progress.asset_done()
+
+
+def _run_serial(job, todo, cfg, progress):
     results = {}
     for item in todo:
+        if item.error:
+            _finish_asset(job, item, _failed_rows(job, item, item.error), results, progress)
+            continue
         try:
-            plan = tasks.plan_asset(item.path, job.params)
+            plan = tasks.plan_asset(item.key, item.path, item.source_sha256, job.params, job.store,
+                                    _row_base(job, item)["reference_key"])
             progress.plan_done(len(plan.clusters))
             parts = []
             for i in range(len(plan.clusters)):
-                parts.append(tasks.embed_cluster_task(plan, i, job.material,
-                                                      [p for _, p, _ in item.outputs], job.params))
+                parts.append(tasks.cluster_task(plan, i, job.params))
                 progress.cluster_done()
-            results[item.key] = tasks.assemble_asset(plan, parts, item.outputs, _row_base(job, item))
         except Exception as exc:  # one bad asset is a failed row, not a stopped run
-            results[item.key] = _failed_rows(job, item, _error_text(exc))
-        _write_manifest(job, item, results[item.key])
-        progress.asset_done()
+            _finish_asset(job, item, _failed_rows(job, item, _error_text(exc)), results, progress)
+            continue
+        rows = []
+        for chunk in _chunks(item.items):
+            try:
+                rows += tasks.issue_task(plan, parts, job.material, chunk, job.params, _row_base(job, item))
+            except Exception as exc:
+                rows += _failed_rows(job, item, _error_text(exc), chunk)
+        _finish_asset(job, item, rows, results, progress)
     return results
 
 
 def _run_dask(job, todo, cfg, progress):
     from distributed import as_completed
 
+    results, stage, open_chunks, rows = {}, {}, {}, {}
     client, cluster = start_client(cfg)
-    results = {}
     try:
-        stage = {}
-        plans = []
+        pending = as_completed([], with_results=False)
         for item in todo:
-            fut = client.submit(tasks.plan_asset, str(item.path), job.params,
-                                key=f"plan-{job.run_id}-{item.key}", pure=False)
-            stage[fut.key] = ("plan", item)
-            plans.append(fut)
-        pending = as_completed(plans, with_results=False)
-        for fut in pending:
-            kind, item = stage.pop(fut.key)
-            if item.key in results:
-                continue  # the asset already failed at an earlier task
-            if fut.status != "finished":
-                results[item.key] = _failed_rows(job, item, _error_text(fut.exception()))
-                _write_manifest(job, item, results[item.key])
-                progress.asset_done()
+            if item.error:
+                _finish_asset(job, item, _failed_rows(job, item, item.error), results, progress)
                 continue
-            if kind == "plan":
-                plan = fut.result()
-                progress.plan_done(len(plan.clusters))
-                payloads = [p for _, p, _ in item.outputs]
-                parts = [client.submit(tasks.embed_cluster_task, fut, i, job.material, payloads,
-                                       job.params, key=f"cluster-{job.run_id}-{item.key}-{i}", pure=False)
-                         for i in range(len(plan.clusters))]
+            fut = client.submit(tasks.plan_asset, item.key, str(item.path), item.source_sha256, job.params,
+                                str(job.store), _row_base(job, item)["reference_key"],
+                                key=f"plan-{job.run_id}-{item.key}", pure=False)
+            stage[fut.key] = ("plan", item, None)
+            pending.add(fut)
+        for fut in pending:
+            kind, item, chunk = stage.pop(fut.key)
+            if kind == "plan" and fut.status != "finished":
+                _finish_asset(job, item, _failed_rows(job, item, _error_text(fut.exception())), results, progress)
+            elif kind == "plan":
+                n = len(fut.result().clusters)
+                progress.plan_done(n)
+                parts = [client.submit(tasks.cluster_task, fut, i, job.params, pure=False,
+                                       key=f"cluster-{job.run_id}-{item.key}-{i}") for i in range(n)]
                 for part in parts:
-                    stage[part.key] = ("cluster", item)
+                    stage[part.key] = ("cluster", item, None)
                     pending.add(part)
-                done = client.submit(tasks.assemble_asset, fut, parts, item.outputs, _row_base(job, item),
-                                     key=f"assemble-{job.run_id}-{item.key}", pure=False)
-                stage[done.key] = ("assemble", item)
-                pending.add(done)
+                chunks = _chunks(item.items)
+                open_chunks[item.key], rows[item.key] = len(chunks), []
+                for c, chunk in enumerate(chunks):
+                    done = client.submit(tasks.issue_task, fut, parts, job.material, chunk, job.params,
+                                         _row_base(job, item), key=f"issue-{job.run_id}-{item.key}-{c}", pure=False)
+                    stage[done.key] = ("issue", item, chunk)
+                    pending.add(done)
             elif kind == "cluster":
                 progress.cluster_done()
             else:
-                results[item.key] = fut.result()
-                _write_manifest(job, item, results[item.key])
-                progress.asset_done()
+                ok = fut.status == "finished"
+                rows[item.key] += fut.result() if ok else _failed_rows(job, item, _error_text(fut.exception()), chunk)
+                open_chunks[item.key] -= 1
+                if open_chunks[item.key] == 0:
+                    _finish_asset(job, item, rows.pop(item.key), results, progress)
     finally:
         client.close()
         if cluster is not None:

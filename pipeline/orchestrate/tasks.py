@@ -1,126 +1,159 @@
 """Task functions of the catalogue graph.  Paths in, small results out.
 
-Each task reads its asset itself (workers load their own data); the tasks
-call the same engine functions as the command line, so a Dask run and a
-serial loop write the same bytes.
+plan (frame, clusters) -> one task per cluster (spectral basis, normals) ->
+issue tasks (one per chunk of recipients: synthesis, write, read-back check).
+Every task reads its asset itself and shares references through the basis
+store, so adding a recipient later costs a synthesis and a write, and the
+memory of an issue task holds one copy at a time whatever the recipients.
 """
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .. import __version__
 from ..io.pointcloud import InputError, read_points, sha256_file, write_points
-from ..watermark import (WatermarkError, cluster_basis, cluster_normals, distortion, frame_of,
-                         modulate_cluster, payload_bits, plan_clusters)
-from ..kernels import modulation
+from ..kernels import digest, fingerprint, resampling
+from ..watermark import WatermarkError, distortion, fingerprint_displacement, fingerprint_length
+from .reference import cluster_reference, load_reference, plan_reference
 
-__all__ = ["AssetPlan", "plan_asset", "embed_cluster_task", "assemble_asset"]
+__all__ = ["AssetPlan", "plan_asset", "cluster_task", "issue_task", "CopyIntegrityError", "copy_label"]
+
+# an issued copy must keep at least this share of its displacement at the file's precision
+MIN_REALIZED = 0.5
+
+
+def copy_label(asset_key, generation):
+    """What a fingerprint is drawn for besides the recipient: the asset and its generation number."""
+    return f"{asset_key}/g{int(generation)}"
+
+
+class CopyIntegrityError(WatermarkError):
+    """A copy that does not differ measurably from its original."""
 
 
 @dataclass(frozen=True)
 class AssetPlan:
     """What the plan task learns about an asset: its frame and clusters."""
 
+    asset_key: str
     path: str
+    source_sha256: str
     n_points: int
     centre: np.ndarray
     phi: float
     clusters: list          # ClusterSpec
+    store: str
+    store_key: str
     seconds: float
 
 
-def _load(path):
+def _points(path, source_sha256):
     cloud = read_points(path)
-    return cloud, cloud.points
+    if source_sha256 and sha256_file(path) != source_sha256:
+        raise InputError(f"{path}: the file changed while the run was planned (sha256 differs)")
+    return cloud
 
 
-def plan_asset(path, params):
-    """Load an asset and grow its clusters."""
+def plan_asset(asset_key, path, source_sha256, params, store, store_key):
+    """Load an asset and grow its clusters (or take them from the store)."""
     t0 = time.perf_counter()
-    _, points = _load(path)
+    points = _points(path, source_sha256).points
     try:
-        frame = frame_of(points)
-        specs = plan_clusters(points - frame.centre, params)
+        centre, phi, specs = plan_reference(points, params, store, store_key)
     except WatermarkError as exc:
         raise InputError(f"{path}: {exc}") from None
-    return AssetPlan(str(path), len(points), frame.centre, frame.phi, specs,
-                     time.perf_counter() - t0)
+    return AssetPlan(asset_key, str(path), source_sha256, len(points), centre, phi, specs, str(store),
+                     store_key, time.perf_counter() - t0)
 
 
-def embed_cluster_task(plan, cluster_pos, material, payloads, params):
-    """Spectral basis of one cluster, modulated once per recipient payload.
+def cluster_task(plan, cluster_pos, params):
+    """Spectral basis (and normals) of one cluster, saved to the store; its digests.
 
     Returns
     -------
-    radius : float
-    displacements : (n_recipients, n_c, 3) float
-    seconds : float
+    dict with radius, membership, basis (digests) and seconds
     """
     t0 = time.perf_counter()
-    _, points = _load(plan.path)
+    points = _points(plan.path, plan.source_sha256).points
     spec = plan.clusters[cluster_pos]
-    centred = points - plan.centre
-    radius, basis = cluster_basis(centred[spec.members], params)
-    normals = cluster_normals(centred, spec.members, params)
-    amplitude = params.beta * plan.phi
-    disps = np.stack([
-        modulate_cluster(basis, spec.index, material,
-                         payload_bits(modulation.hex_to_bits(p, params.n_bits), params), amplitude, params,
-                         normals)
-        for p in payloads
-    ])
-    return radius, disps, time.perf_counter() - t0
+    radius, basis, _ = cluster_reference(points, plan.centre, spec, params, plan.store, plan.store_key)
+    return {"radius": float(radius), "membership": digest.membership_digest(spec.members),
+            "basis": digest.basis_digest(basis), "seconds": time.perf_counter() - t0}
 
 
-def assemble_asset(plan, cluster_results, outputs, row_base):
-    """Apply every recipient's displacements and write the outputs atomically.
+def issue_task(plan, cluster_results, material, items, params, row_base):
+    """Write one watermarked copy per recipient of ``items``; one ledger row each.
 
     Parameters
     ----------
     plan : AssetPlan
-    cluster_results : list of (radius, displacements, seconds)
-    outputs : list of (recipient, payload, output_path)
+    cluster_results : list of dict (from :func:`cluster_task`)
+    material : bytes
+        Key material of the key id (never the master secret).
+    items : list of (recipient, output_path)
+    params : WatermarkParams
     row_base : dict
-        Manifest columns shared by the rows.
+        Ledger columns shared by the rows.
 
     Returns
     -------
     list of dict
-        One manifest row per recipient.
     """
-    t0 = time.perf_counter()
-    cloud, points = _load(plan.path)
-    centred = points - plan.centre
+    cloud = _points(plan.path, plan.source_sha256)
+    points = cloud.points
+    recorded = {"membership": [c["membership"] for c in cluster_results],
+                "basis": [c["basis"] for c in cluster_results]}
+    ref = load_reference(points, params, plan.store, plan.store_key, recorded, source="this run's cluster tasks")
+    length = fingerprint_length(len(ref.specs), params)
+    bank = fingerprint.chip_bank(material, copy_label(plan.asset_key, row_base["generation"]),
+                                 [r for r, _ in items], length)
+    tree = cKDTree(points)
+    normals = resampling.estimate_normals(points)
+    shared = {**row_base, "n_points": plan.n_points, "fingerprint_length": length,
+              "cluster_seeds": [s.seed_index for s in ref.specs],
+              "cluster_sizes": [int(len(s.members)) for s in ref.specs],
+              "cluster_radii": [c["radius"] for c in cluster_results],
+              "cluster_membership_digests": recorded["membership"],
+              "cluster_basis_digests": recorded["basis"], "tool_version": __version__}
     rows = []
-    for r, (recipient, payload, out) in enumerate(outputs):
-        moved = centred.copy()
-        for spec, (_, disps, _) in zip(plan.clusters, cluster_results):
-            moved[spec.members] += disps[r]
-        marked = moved + plan.centre
-        write_points(cloud, marked, out)
-        dist = distortion(points, marked)
-        rows.append({
-            **row_base,
-            "output_path": str(out),
-            "output_sha256": sha256_file(out),
-            "recipient": recipient,
-            "payload": payload,
-            "n_points": plan.n_points,
-            "cluster_seeds": [s.seed_index for s in plan.clusters],
-            "cluster_sizes": [int(len(s.members)) for s in plan.clusters],
-            "cluster_radii": [float(res[0]) for res in cluster_results],
-            **dist,
-            "seconds_plan": plan.seconds,
-            "seconds_clusters": float(sum(res[2] for res in cluster_results)),
-            "status": "ok",
-            "error": None,
-            "tool_version": __version__,
-        })
-    seconds = time.perf_counter() - t0
-    for row in rows:
-        row["seconds_write"] = seconds
+    for j, (recipient, out) in enumerate(items):
+        t0 = time.perf_counter()
+        marked = points.copy()
+        for spec, moved in zip(ref.specs, fingerprint_displacement(ref, fingerprint.signs(bank[j], length)[0],
+                                                                    params)):
+            marked[spec.members] += moved
+        out = Path(out)
+        pending = out.with_name(f".{out.stem}.pending{out.suffix}")
+        write_points(cloud, marked, pending)      # published only once it is checked
+        try:
+            written = read_points(pending).points
+            ratio = _realized_ratio(points, marked, written, out)
+        except Exception:
+            pending.unlink(missing_ok=True)
+            raise
+        os.replace(pending, out)
+        rows.append({**shared, "recipient": recipient, "output_path": str(out),
+                     "output_sha256": sha256_file(out), "realized_ratio": ratio,
+                     **distortion(points, written, tree=tree, normals=normals),
+                     "seconds_copy": time.perf_counter() - t0, "status": "ok", "error": None})
     return rows
+
+
+def _realized_ratio(original, intended, written, out):
+    """Share of the intended displacement the written file keeps; refuses unmarked copies."""
+    want = intended - original
+    got = written - original
+    energy = float((want**2).sum())
+    ratio = float((want * got).sum()) / energy if energy > 0 else 0.0
+    if not np.any(got) or ratio < MIN_REALIZED:
+        raise CopyIntegrityError(
+            f"{out}: the copy does not differ measurably from its original (the file keeps "
+            f"{100 * max(ratio, 0.0):.1f} % of the displacement at its precision); raise beta")
+    return ratio

@@ -24,9 +24,9 @@ def test_non_finite_coordinates_are_refused(tmp_path):
 
 
 def test_unknown_format_is_refused(tmp_path):
-    (tmp_path / "a.obj").write_text("v 0 0 0\n")
+    (tmp_path / "a.stl").write_text("solid a\nendsolid a\n")
     with pytest.raises(InputError, match="unknown point-cloud format"):
-        read_points(tmp_path / "a.obj")
+        read_points(tmp_path / "a.stl")
 
 
 def test_original_is_never_overwritten(tmp_path):

@@ -13,7 +13,7 @@ import pytest
 import yaml
 
 from pipeline import config
-from pipeline.io.manifest import EMBED_SCHEMA, read_dataset
+from pipeline.io.ledger import LEDGER_SCHEMA, Ledger
 from pipeline.io.pointcloud import write_array
 from pipeline.demo import procedural_shape
 from pipeline.orchestrate.run import plan_job, run_job
@@ -48,8 +48,8 @@ def write_config(tmp, source, *, out="out", extra=None):
     return path
 
 
-def _run(cfg_path, *, serial=False, force=False):
-    cfg = config.load_config(cfg_path)
+def _run(cfg_path, *, serial=False, force=False, sets=()):
+    cfg = config.load_config(cfg_path, sets)
     job = plan_job(cfg, SECRET.encode(), force=force)
     return job, run_job(job, cfg, serial=serial, progress=Progress())
 
@@ -59,6 +59,11 @@ def _outputs(folder):
             if p.is_file()}
 
 
+def _rows(job_or_folder):
+    folder = job_or_folder.manifests if hasattr(job_or_folder, "manifests") else job_or_folder
+    return Ledger(folder).rows(status=None)
+
+
 def test_dask_outputs_are_byte_identical_to_a_serial_loop(tmp_path):
     src = make_catalogue(tmp_path / "assets")
     _, c1 = _run(write_config(tmp_path, src, out="dask"))
@@ -66,41 +71,167 @@ def test_dask_outputs_are_byte_identical_to_a_serial_loop(tmp_path):
     assert c1 == c2 == {"ok": 4, "failed": 0, "skipped": 0}
     a, b = _outputs(tmp_path / "dask" / "marked"), _outputs(tmp_path / "serial" / "marked")
     assert len(a) == 8 and a == b
-    table = ds.dataset(str(tmp_path / "dask" / "manifests"), format="parquet").to_table()
-    assert table.num_rows == 8 and table.schema.equals(EMBED_SCHEMA)
+    table = ds.dataset(str(tmp_path / "dask" / "manifests" / "copies"), format="parquet").to_table()
+    assert table.num_rows == 8 and table.schema.equals(LEDGER_SCHEMA)
     assert sorted(set(table["recipient"].to_pylist())) == ["alice", "bob"]
-    assert len(set(table["payload"].to_pylist())) == 8
+    assert set(table["generation"].to_pylist()) == {1}
+    assert min(table["realized_ratio"].to_pylist()) > 0.99      # float64 and LAS 1e-4 keep the mark
 
 
-def test_rerun_skips_done_assets_and_force_redoes_them(tmp_path):
-    cfg = write_config(tmp_path, make_catalogue(tmp_path / "assets", n_assets=2))
-    _run(cfg, serial=True)
+def test_a_rerun_issues_nothing_and_an_added_recipient_costs_one_copy(tmp_path):
+    src = make_catalogue(tmp_path / "assets", n_assets=2)
+    cfg = write_config(tmp_path, src)
+    job, _ = _run(cfg, serial=True)
+    parts = {p.name: p.read_bytes() for p in Ledger(job.manifests).parts()}
+    outputs = _outputs(tmp_path / "out" / "marked")
     _, counts = _run(cfg, serial=True)
     assert counts == {"ok": 0, "failed": 0, "skipped": 2}
-    # a tampered output is redone
-    victim = next((tmp_path / "out" / "marked" / "alice").iterdir())
-    victim.write_bytes(victim.read_bytes()[:-10] + b"0123456789")
-    _, counts = _run(cfg, serial=True)
-    assert counts == {"ok": 1, "failed": 0, "skipped": 1}
-    _, counts = _run(cfg, serial=True, force=True)
+    job, counts = _run(cfg, serial=True, sets=["recipients=[alice, bob, carol]"])
     assert counts == {"ok": 2, "failed": 0, "skipped": 0}
+    after = {p.name: p.read_bytes() for p in Ledger(job.manifests).parts()}
+    assert all(after[name] == blob for name, blob in parts.items())          # earlier rows untouched
+    new = _outputs(tmp_path / "out" / "marked")
+    assert {k: v for k, v in new.items() if k in outputs} == outputs
+    assert sorted(set(new) - set(outputs)) == ["carol/asset-0.ply", "carol/asset-1.pcd"]
+    rows = _rows(job)
+    assert len(rows) == 6 and len({(r["asset_key"], r["recipient"]) for r in rows}) == 6
 
 
-def test_a_corrupt_asset_becomes_one_failed_row(tmp_path):
+def test_a_changed_parameter_starts_generation_2_and_generation_1_stays_attributable(tmp_path, monkeypatch):
+    from pipeline.kernels import attacks
+    from pipeline.orchestrate.detect import detect_from_ledger
+    from pipeline.io.pointcloud import read_points
+
+    src = make_catalogue(tmp_path / "assets", n_assets=1)
+    cfg = write_config(tmp_path, src)
+    job, _ = _run(cfg, serial=True)
+    first = {p.name: p.read_bytes() for p in Ledger(job.manifests).parts()}
+    job, counts = _run(cfg, serial=True, sets=["beta=0.003"])
+    assert counts["ok"] == 1
+    rows = _rows(job)
+    assert sorted((r["generation"], r["recipient"]) for r in rows) == [(1, "alice"), (1, "bob"), (2, "alice"),
+                                                                       (2, "bob")]
+    assert all(Ledger(job.manifests).folder.joinpath("copies", n).read_bytes() == b for n, b in first.items())
+    gen1 = tmp_path / "out" / "marked" / "bob" / "asset-0.ply"
+    assert (tmp_path / "out" / "marked" / "bob" / "asset-0.g2.ply").is_file()
+    leak = attacks.apply_chain(read_points(gen1).points, [("random_similarity", None), ("shuffle", None)], 5)
+    write_array(tmp_path, "leak", leak, "ply")
+    result = detect_from_ledger(tmp_path / "leak.ply", job.manifests, SECRET.encode(),
+                                config.detect_params(config.load_config(cfg)))
+    assert result["verdict"] == "match"
+    assert [a["recipient"] for a in result["accused"]] == ["bob"]
+    assert [g for g, _ in result["accused"][0]["copies"]] == [1]
+    assert result["n_checked"] == 4       # 2 recipients x 2 generations (references differ in nothing but beta)
+
+
+def test_two_concurrent_runs_lose_no_row(tmp_path):
+    src = make_catalogue(tmp_path / "assets", n_assets=3)
+    cfg = write_config(tmp_path, src)
+    env = dict(os.environ, PYTHONPATH=str(ROOT), OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
+    cmd = [sys.executable, "-m", "pipeline.cli", "run", str(cfg), "--serial"]
+    procs = [subprocess.Popen(cmd + ["--set", f"recipients=[{who}]"], cwd=tmp_path, env=env,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for who in ("alice, bob", "bob, carol")]
+    outs = [p.communicate(timeout=600) for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], outs
+    rows = _rows(tmp_path / "out" / "manifests")
+    pairs = [(r["asset_key"], r["recipient"]) for r in rows]
+    assert len(pairs) == len(set(pairs)) == 9                       # 3 assets x {alice, bob, carol}
+    assert all(r["status"] == "ok" and Path(r["output_path"]).is_file() for r in rows)
+
+
+def test_a_changed_clustering_constant_fails_detection_with_a_digest_mismatch(tmp_path, monkeypatch):
+    from pipeline.kernels import clustering
+    from pipeline.orchestrate.detect import detect_from_ledger
+    from pipeline.watermark import ReferenceMismatch
+
+    src = make_catalogue(tmp_path / "assets", n_assets=1)
+    cfg = write_config(tmp_path, src)
+    job, _ = _run(cfg, serial=True)
+    copy = tmp_path / "out" / "marked" / "alice" / "asset-0.ply"
+    dparams = config.detect_params(config.load_config(cfg))
+    ok = detect_from_ledger(copy, job.manifests, SECRET.encode(), dparams, store=tmp_path / "fresh-store")
+    assert [a["recipient"] for a in ok["accused"]] == ["alice"]        # a rebuilt reference verifies
+    monkeypatch.setattr(clustering, "_FRONTIER_K", 5)
+    with pytest.raises(ReferenceMismatch, match="cluster 0 members digest"):
+        detect_from_ledger(copy, job.manifests, SECRET.encode(), dparams, store=tmp_path / "other-store")
+
+
+def test_worker_processes_never_hold_the_master_secret(tmp_path, monkeypatch):
+    from pipeline.orchestrate.run import start_client
+
+    monkeypatch.setenv("POINTMARK_SECRET", SECRET)
+    cfg = config.load_config(write_config(tmp_path, tmp_path))
+    client, cluster = start_client(cfg)
+    try:
+        seen = client.run(lambda: {k: v for k, v in __import__("os").environ.items()
+                                   if "POINTMARK_SECRET" in k or SECRET in v})
+    finally:
+        client.close()
+        cluster.close()
+    assert len(seen) == 2 and all(found == {} for found in seen.values())
+    assert os.environ["POINTMARK_SECRET"] == SECRET                 # restored for this process
+
+
+def test_a_corrupt_asset_becomes_failed_rows_and_the_rest_complete(tmp_path):
     src = make_catalogue(tmp_path / "assets", n_assets=3)
     (src / "broken.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 900\n"
                                      b"property float x\nproperty float y\nproperty float z\nend_header\n" + b"\0" * 50)
     job, counts = _run(write_config(tmp_path, src))
     assert counts == {"ok": 3, "failed": 1, "skipped": 0}
-    table = read_dataset(job.manifests, EMBED_SCHEMA).to_pylist()
-    failed = [r for r in table if r["status"] == "failed"]
+    rows = _rows(job)
+    failed = [r for r in rows if r["status"] == "failed"]
     assert {r["asset_key"] for r in failed} == {"broken"} and len(failed) == 2
-    assert "broken.ply" in failed[0]["error"] and "truncated" in failed[0]["error"]
-    assert all(Path(r["output_path"]).is_file() for r in table if r["status"] == "ok")
+    assert "broken.ply" in failed[0]["error"]
+    assert all(Path(r["output_path"]).is_file() for r in rows if r["status"] == "ok")
     assert not (tmp_path / "out" / "marked" / "alice" / "broken.ply").exists()
 
 
-def test_cli_exit_status_and_secret_never_in_manifests_or_logs(tmp_path):
+def test_a_missing_or_corrupt_asset_in_a_catalogue_file_is_a_failed_row(tmp_path):
+    from pipeline.io.catalog import catalogue_record, discover_assets, write_catalogue
+
+    src = make_catalogue(tmp_path / "assets", n_assets=2)
+    (src / "broken.xyz").write_text("1 2 3\nnot numbers at all\n")
+    rows = [catalogue_record(a) for a in discover_assets(src)]
+    rows.append({"asset_key": "gone", "path": str(tmp_path / "nowhere.ply"), "recipients": []})
+    write_catalogue(rows, tmp_path / "catalog.parquet")
+    job, counts = _run(write_config(tmp_path, tmp_path / "catalog.parquet"), serial=True)
+    assert counts == {"ok": 2, "failed": 2, "skipped": 0}
+    failed = {r["asset_key"]: r["error"] for r in _rows(job) if r["status"] == "failed"}
+    assert set(failed) == {"broken", "gone"} and "no such file" in failed["gone"]
+
+
+def test_catalogue_and_config_recipients_are_both_issued(tmp_path):
+    from pipeline.io.catalog import catalogue_record, discover_assets, write_catalogue
+
+    src = make_catalogue(tmp_path / "assets", n_assets=1)
+    rows = [catalogue_record(a) for a in discover_assets(src, default_recipients=("dave",))]
+    write_catalogue(rows, tmp_path / "catalog.parquet")
+    job, _ = _run(write_config(tmp_path, tmp_path / "catalog.parquet"), serial=True)
+    assert sorted(r["recipient"] for r in _rows(job)) == ["alice", "bob", "dave"]
+
+
+@pytest.mark.parametrize("name", ["../x", "/abs", "a/b", "..", ".hidden"])
+def test_a_recipient_that_escapes_the_output_folder_is_refused(tmp_path, name):
+    src = make_catalogue(tmp_path / "assets", n_assets=1)
+    cfg = write_config(tmp_path, src)
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    res = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", str(cfg), "--serial", "--set",
+                          f"recipients=[alice, '{name}']"], cwd=tmp_path, env=env, capture_output=True, text=True)
+    assert res.returncode == 2 and "recipients" in res.stderr and len(res.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "out").exists() and not (tmp_path / "x").exists()
+
+
+def test_a_beta_too_small_to_change_the_file_is_refused(tmp_path):
+    src = make_catalogue(tmp_path / "assets", n_assets=1)
+    job, counts = _run(write_config(tmp_path, src), serial=True, sets=["beta=1.0e-300"])
+    assert counts == {"ok": 0, "failed": 1, "skipped": 0}
+    rows = _rows(job)
+    assert all(r["status"] == "failed" and "does not differ measurably" in r["error"] for r in rows)
+    assert not [p for p in (tmp_path / "out" / "marked").rglob("*") if p.is_file()]
+
+
+def test_cli_exit_status_and_secret_never_in_ledger_or_logs(tmp_path):
     src = make_catalogue(tmp_path / "assets", n_assets=2)
     (src / "bad.xyz").write_text("1 2 3\nnot numbers at all\n")
     cfg = write_config(tmp_path, src)
@@ -111,8 +242,8 @@ def test_cli_exit_status_and_secret_never_in_manifests_or_logs(tmp_path):
     assert res.returncode == 1, res.stderr
     logs = res.stdout + res.stderr
     assert "[pointmark] assets" in logs                     # plain progress lines off a terminal
-    blobs = [p.read_bytes() for p in (tmp_path / "out" / "manifests").glob("*.parquet")]
-    assert len(blobs) == 3
+    blobs = [p.read_bytes() for p in (tmp_path / "out" / "manifests").rglob("*") if p.is_file()]
+    assert len(blobs) >= 3
     for text in [logs.encode(), *blobs]:
         assert SECRET.encode() not in text
     bad = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", str(cfg), "--set", "beta=-3"],
@@ -125,7 +256,7 @@ def test_dry_run_prints_the_plan_and_writes_nothing(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     res = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", str(cfg), "--dry-run"], cwd=tmp_path,
                          env=env, capture_output=True, text=True, check=True)
-    assert "asset-0" in res.stdout and "2 recipients" in res.stdout and "tasks" in res.stdout
+    assert "asset-0: generation 1, 0 issued; to issue: alice, bob" in res.stdout
     assert not (tmp_path / "out").exists()
 
 
@@ -167,24 +298,24 @@ def test_run_through_an_existing_scheduler_with_two_worker_processes(tmp_path):
                 p.kill()
 
 
-def test_an_interrupted_run_resumes_with_each_asset_done_once(tmp_path):
+def test_an_interrupted_run_resumes_and_issues_each_copy_once(tmp_path):
     src = make_catalogue(tmp_path / "assets", n_assets=6)
     cfg = write_config(tmp_path, src, extra={"dask": {"n_workers": 1}})
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "run", str(cfg)], cwd=tmp_path, env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
-    manifests = tmp_path / "out" / "manifests"
+    ledger = Ledger(tmp_path / "out" / "manifests")
     deadline = time.time() + 300
-    while time.time() < deadline and len(list(manifests.glob("*.parquet"))) < 2:
+    while time.time() < deadline and len(ledger.parts()) < 2:
         time.sleep(0.2)
     os.killpg(proc.pid, signal.SIGKILL)                 # the run and its workers, mid-way
     proc.wait()
-    first = len(list(manifests.glob("*.parquet")))
+    first = len(ledger.parts())
     assert 2 <= first < 6
     job, counts = _run(cfg)
     assert counts["skipped"] == first and counts["ok"] == 6 - first and counts["failed"] == 0
-    rows = read_dataset(manifests, EMBED_SCHEMA).to_pylist()
+    rows = _rows(job)
     keys = [(r["asset_key"], r["recipient"]) for r in rows]
     assert len(keys) == len(set(keys)) == 12
     assert all(r["status"] == "ok" for r in rows)
-    assert not list((tmp_path / "out").rglob(".*.tmp*"))
+    assert not [p for p in (tmp_path / "out" / "marked").rglob("*") if p.name.startswith(".")]

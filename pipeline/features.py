@@ -1,0 +1,339 @@
+"""Local shape features (FPFH) for part-to-whole registration and candidate search.
+
+open3d computes the features, so this module sits outside
+:mod:`pipeline.kernels`; the robust estimation on top of them (RANSAC with
+scale, trimmed ICP) is pure NumPy in :mod:`pipeline.kernels.registration`.
+
+Scale.  FPFH depends on the radius it is computed over, and a suspect's
+scale is unknown.  Every cloud is therefore described in units of a *voxel*
+(points are voxel-downsampled, normals estimated within 2 voxels, FPFH
+within 5): for the original the voxel is set from its median point spacing
+so that about ``target`` keypoints remain; for a suspect the voxel is the
+original's times a hypothesised scale.  The first hypothesis assumes the
+suspect has the original's sampling density (then the spacing ratio is the
+scale); the others step by sqrt(2) around it, so a resampled copy or a scene
+whose clutter has another density is still described at a radius within
+about 20 % of the right one, which FPFH tolerates.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .kernels import registration
+from .kernels.resampling import nearest_spacing
+
+__all__ = [
+    "fpfh", "voxel_for", "match", "register_global", "GlobalResult",
+    "FeatureIndex", "build_index", "geometry_hash", "overlap_score", "dense_part", "median_spacing",
+]
+
+NORMAL_RADIUS = 2.0     # voxels
+FEATURE_RADIUS = 5.0    # voxels
+
+
+def _o3d():
+    import open3d as o3d
+
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+    return o3d
+
+
+def median_spacing(points, sample=20000, rng=0):
+    """Median nearest-neighbour distance, on a seeded subsample of large clouds."""
+    if len(points) > sample:
+        # a random subsample's own spacing is larger; measure the sample's
+        # distances to the whole cloud instead
+        idx = np.random.default_rng(rng).choice(len(points), sample, replace=False)
+        dist, _ = cKDTree(points).query(points[idx], k=2)
+        return float(np.median(dist[:, 1]))
+    return float(np.median(nearest_spacing(points)))
+
+
+def voxel_for(points, spacing, target=4000):
+    """Voxel size that leaves about ``target`` keypoints on a surface sampled at ``spacing``."""
+    # a surface of n points at spacing s has an area of about n s^2 / 2, and
+    # voxel-downsampling keeps about 2 points per voxel-sized patch of it
+    return float(spacing * np.sqrt(max(len(points), 1) / target))
+
+
+def fpfh(points, voxel):
+    """Voxel-downsampled keypoints and their FPFH descriptors.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+    voxel : float
+        Downsampling voxel; normals are estimated within 2 voxels and FPFH
+        within 5, so the descriptor of a scaled copy matches when ``voxel``
+        is scaled with it.
+
+    Returns
+    -------
+    keypoints : (k, 3) float
+    features : (k, 33) float32
+        Each row normalised to unit L2 norm.
+    """
+    o3d = _o3d()
+    origin = points.min(axis=0)
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector((points - origin) / voxel))
+    down = cloud.voxel_down_sample(1.0)
+    if len(down.points) < 5:
+        return np.empty((0, 3)), np.empty((0, 33), dtype=np.float32)
+    down.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=NORMAL_RADIUS, max_nn=30))
+    feat = o3d.pipelines.registration.compute_fpfh_feature(
+        down, o3d.geometry.KDTreeSearchParamHybrid(radius=FEATURE_RADIUS, max_nn=100))
+    f = np.asarray(feat.data).T.astype(np.float32)
+    f /= np.maximum(np.linalg.norm(f, axis=1, keepdims=True), 1e-12)
+    return np.asarray(down.points) * voxel + origin, f
+
+
+def match(query, reference, *, chunk=2048):
+    """Nearest neighbours in feature space, both ways.
+
+    Features are unit vectors, so the nearest is the largest dot product,
+    found by matrix products in chunks (much faster than a k-d tree in 33
+    dimensions).
+
+    Parameters
+    ----------
+    query : (k, d) float, unit rows
+    reference : (r, d) float, unit rows
+
+    Returns
+    -------
+    forward : (k,) int
+        Nearest reference row of every query row.
+    back : (r,) int
+        Nearest query row of every reference row.
+    """
+    query = np.asarray(query, dtype=np.float32)
+    reference = np.asarray(reference, dtype=np.float32)
+    forward = np.empty(len(query), dtype=np.int64)
+    best = np.full(len(reference), -np.inf, dtype=np.float32)
+    back = np.zeros(len(reference), dtype=np.int64)
+    cols = np.arange(len(reference))
+    for lo in range(0, len(query), chunk):
+        block = query[lo:lo + chunk]
+        forward[lo:lo + chunk] = (block @ reference.T).argmax(axis=1)
+        sim = reference @ block.T
+        rows = sim.argmax(axis=1)
+        value = sim[cols, rows]
+        better = value > best
+        best[better] = value[better]
+        back[better] = rows[better] + lo
+    return forward, back
+
+
+def dense_part(points, k=6, factor=3.0):
+    """Points whose k-th neighbour is within ``factor`` x the median such distance.
+
+    Drops sparse outliers (uniform junk in the bounding box) before features
+    are computed; surface points of any density above a third of the
+    typical one stay.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+
+    Returns
+    -------
+    (m, 3) float
+    """
+    if len(points) <= k + 1:
+        return points
+    dist, _ = cKDTree(points).query(points, k=k + 1)
+    kth = dist[:, -1]
+    return points[kth <= factor * np.median(kth)]
+
+
+@dataclass
+class GlobalResult:
+    """Outcome of :func:`register_global`."""
+
+    transform: registration.Similarity   # suspect -> original, after ICP
+    fitness: float                       # share of suspect points within 3 spacings of the original
+    coverage: float                      # share of the original within 3 spacings of the suspect
+    residual: float                      # RMS distance of the suspect inliers (original units)
+    scale_hypothesis: float
+    ransac_inliers: int
+    seconds: float
+    tried: list = field(default_factory=list)
+
+    @property
+    def score(self):
+        """Overlap seen from both sides (harmonic mean of fitness and coverage)."""
+        f, c = self.fitness, self.coverage
+        return 0.0 if f + c == 0 else 2 * f * c / (f + c)
+
+    def failed(self, min_fitness=0.1, min_coverage=0.1):
+        """True when too little of either cloud lies on the other: no registration."""
+        return self.fitness < min_fitness or self.coverage < min_coverage
+
+
+class _Original:
+    """Everything about the original that a registration needs, computed once."""
+
+    def __init__(self, points, spacing, target):
+        self.points = points
+        self.spacing = spacing
+        self.tree = cKDTree(points)
+        self.voxel = voxel_for(points, spacing, target)
+        self.keypoints, self.features = fpfh(points, self.voxel)
+        self.diag = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+        rng = np.random.default_rng(0)
+        self.sample = points[rng.choice(len(points), min(len(points), 4000), replace=False)]
+
+
+_CACHE: dict = {}
+
+
+def _original(points, spacing, target):
+    key = (points.shape, hashlib.sha1(np.ascontiguousarray(points[:: max(1, len(points) // 1000)])).hexdigest(),
+           round(spacing, 12), target)
+    if key not in _CACHE:
+        _CACHE.clear()
+        _CACHE[key] = _Original(points, spacing, target)
+    return _CACHE[key]
+
+
+def overlap_score(transform, suspect, original, spacing):
+    """Harmonic mean of fitness and coverage of any registration (as :attr:`GlobalResult.score`).
+
+    Parameters
+    ----------
+    transform : registration.Similarity, suspect -> original
+    suspect : (n, 3) float
+    original : (m, 3) float
+    spacing : float
+
+    Returns
+    -------
+    float in [0, 1]
+    """
+    ref = _original(original, spacing, 4000)
+    f, c, _ = registration.overlap(registration.apply(transform, suspect), ref.tree, ref.sample, 3.0 * spacing)
+    return 0.0 if f + c == 0 else 2 * f * c / (f + c)
+
+
+def _good(result, good, spacing):
+    return (result is not None and min(result.fitness, result.coverage) >= good
+            and result.residual < 2.0 * spacing)
+
+
+def register_global(suspect, original, *, spacing, target=4000, scales=(1.0, 2**0.5, 2**-0.5, 2.0, 0.5),
+                    iterations=20000, good=0.2, rng=0, icp_points=6000, candidates_per_pool=8):
+    """Part-to-whole similarity registration from FPFH correspondences.
+
+    For each scale hypothesis (relative to the spacing ratio of suspect and
+    original): describe the suspect at the scaled voxel, match to the
+    original's features, estimate a similarity by RANSAC with scale
+    (:func:`registration.ransac_similarity`), refine by trimmed ICP with a
+    fixed cut (:func:`registration.refine_part`) and score the overlap from
+    both sides (the best hypothesis has the highest harmonic mean of the
+    fitness and the coverage).
+
+    Parameters
+    ----------
+    suspect : (n, 3) float
+    original : (m, 3) float
+    spacing : float
+        Median nearest-neighbour distance of the original.
+    target : int
+        About how many keypoints describe the original.
+    scales : sequence of float
+        Scale hypotheses, as factors on the spacing ratio.
+    iterations : int
+        RANSAC samples per hypothesis.
+    good : float
+        The search ends at the first hypothesis whose fitness and coverage
+        both reach this, with a residual under 2 spacings.
+    rng : int
+    icp_points : int
+        Suspect subsample for the ICP.
+    candidates_per_pool : int
+        Distinct RANSAC hypotheses checked by a short ICP per pool of
+        correspondences.
+
+    Returns
+    -------
+    GlobalResult
+    """
+    t0 = time.perf_counter()
+    ref = _original(original, spacing, target)
+    gen = np.random.default_rng(rng)
+    dense = dense_part(suspect)
+    ratio = median_spacing(dense) / spacing
+    sub = suspect
+    if len(suspect) > icp_points:
+        sub = suspect[np.sort(gen.choice(len(suspect), icp_points, replace=False))]
+    probe = sub[:: max(1, len(sub) // 1500)]
+    best = None
+    tried = []
+    for factor in scales:
+        s = ratio * factor
+        keys, feats = fpfh(dense, ref.voxel * s)
+        if len(keys) < 3:
+            continue
+        forward, back = match(feats, ref.features)
+        # Two pools of correspondences: every suspect keypoint's nearest
+        # original one (best when the suspect is part of the asset) and every
+        # original keypoint's nearest suspect one (best when the asset is part
+        # of a larger scene, whose clutter would swamp the first pool).
+        pools = {"forward": (np.arange(len(keys)), forward), "back": (back, np.arange(len(ref.keypoints)))}
+        for pool, (iq, ir) in pools.items():
+            # each keypoint counts once however many correspondences it takes part in
+            weights = 1.0 / np.maximum(np.bincount(ir, minlength=len(ref.keypoints))[ir],
+                                       np.bincount(iq, minlength=len(keys))[iq])
+            # features at this hypothesis only match at about this scale
+            candidates = registration.ransac_similarity(
+                keys[iq], ref.keypoints[ir], threshold=2.0 * ref.voxel, iterations=iterations, rng=gen,
+                min_edge=2.0 * ref.voxel * s, scale_range=(1.0 / (1.6 * s), 1.6 / s), weights=weights,
+                local_radius=0.3 * ref.diag * s, top=candidates_per_pool)
+            # the inlier count is a weak judge among the best hypotheses; a
+            # short ICP on a small subsample and the overlap decide
+            checked = []
+            for coarse, inliers in candidates:
+                quick = registration.refine_part(probe, ref.tree, original, coarse, spacing=spacing,
+                                                 iterations=10)
+                f, c, _ = registration.overlap(registration.apply(quick, probe), ref.tree, ref.sample[:1000],
+                                               3.0 * spacing)
+                checked.append((0.0 if f + c == 0 else 2 * f * c / (f + c), quick, inliers))
+            if not checked:
+                continue
+            _, quick, inliers = max(checked, key=lambda x: x[0])
+            fine = registration.refine_part(sub, ref.tree, original, quick, spacing=spacing)
+            fitness, coverage, residual = registration.overlap(
+                registration.apply(fine, suspect), ref.tree, ref.sample, 3.0 * spacing)
+            result = GlobalResult(
+                registration.Similarity(fine.rotation, fine.scale, fine.translation, fitness, residual),
+                fitness, coverage, residual, float(s), int(inliers.sum()), 0.0)
+            tried.append({"scale_hypothesis": float(s), "pool": pool, "fitness": fitness, "coverage": coverage,
+                          "residual": residual, "ransac_inliers": int(inliers.sum()),
+                          "correspondences": int(len(iq))})
+            if best is None or result.score > best.score:
+                best = result
+            if _good(best, good, spacing):
+                break
+        if _good(best, good, spacing):
+            break
+    if best is None:
+        identity = registration.Similarity(np.eye(3), 1.0, np.zeros(3), 0.0, float("inf"))
+        best = GlobalResult(identity, 0.0, 0.0, float("inf"), float("nan"), 0, 0.0)
+    else:
+        # final refinement on every suspect point
+        fine = registration.refine_part(suspect, ref.tree, original, best.transform, spacing=spacing,
+                                        widths=(3.0,))
+        fitness, coverage, residual = registration.overlap(
+            registration.apply(fine, suspect), ref.tree, ref.sample, 3.0 * spacing)
+        best.transform = registration.Similarity(fine.rotation, fine.scale, fine.translation, fitness, residual)
+        best.fitness, best.coverage, best.residual = fitness, coverage, residual
+    best.tried = tried
+    best.seconds = time.perf_counter() - t0
+    return best

@@ -1,0 +1,399 @@
+"""PCD (Point Cloud Library) reading and writing that keeps every field and byte.
+
+The header (comments, VERSION, FIELDS, SIZE, TYPE, COUNT, WIDTH, HEIGHT,
+VIEWPOINT, POINTS, DATA) is kept verbatim.  ``ascii`` bodies are kept as
+text and only the x, y, z tokens of moved points are rewritten (full
+precision of the field's type); ``binary`` and ``binary_compressed`` bodies
+become a packed little-endian record array whose x, y, z are replaced and
+which is written back in the input's own encoding.  Fields keep their
+TYPE, SIZE and COUNT; double x, y, z stay double.
+
+``binary_compressed`` uses LZF: decompression is complete; the compressor
+here encodes literals and repeats at short distances (the byte runs of
+constant or periodic field columns).  Its output is valid LZF that PCL and
+open3d read, though it may be larger than PCL's own.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+
+import numpy as np
+
+from .text import TextFormatError, parse_coords, rewrite_lines, split_lines
+
+__all__ = ["PcdData", "PcdError", "read_pcd", "write_pcd", "pcd_from_points",
+           "lzf_compress", "lzf_decompress"]
+
+_TYPES = {("F", 4): "<f4", ("F", 8): "<f8", ("I", 1): "i1", ("I", 2): "<i2", ("I", 4): "<i4",
+          ("I", 8): "<i8", ("U", 1): "u1", ("U", 2): "<u2", ("U", 4): "<u4", ("U", 8): "<u8"}
+_ENCODINGS = ("ascii", "binary", "binary_compressed")
+_REPEAT_DISTANCES = (1, 2, 3, 4, 6, 8, 12, 16)
+_MIN_REPEAT = 8  # shorter repeats save too little to pay for the Python loop over them
+
+
+class PcdError(ValueError):
+    """A PCD file that cannot be read (the message says why)."""
+
+
+@dataclass
+class PcdData:
+    """A PCD file: verbatim header plus its records or its text body.
+
+    Attributes
+    ----------
+    header : bytes
+        Everything up to and including the ``DATA`` line.
+    fields : list of (name, type, size, count)
+    encoding : str
+        ``ascii``, ``binary`` or ``binary_compressed``.
+    records : (n,) structured array or None
+        Binary encodings; field names made unique (``_`` padding fields renamed).
+    lines, rows, cols, kinds :
+        ASCII encoding: see :class:`pipeline.io.text.TextTable`.
+    points : (n, 3) float64
+    """
+
+    header: bytes
+    fields: list
+    encoding: str
+    points: np.ndarray
+    records: np.ndarray = None
+    lines: list = None
+    rows: np.ndarray = None
+    cols: tuple = None
+    kinds: tuple = None
+
+
+def read_pcd(data):
+    """Parse PCD bytes.
+
+    Parameters
+    ----------
+    data : bytes
+
+    Returns
+    -------
+    PcdData
+    """
+    header, body, keys = _split_header(data)
+    fields = _fields(keys)
+    n = _point_count(keys)
+    encoding = keys["DATA"][0]
+    if encoding not in _ENCODINGS:
+        raise PcdError(f"unknown DATA encoding {encoding!r} (use one of {', '.join(_ENCODINGS)})")
+    if encoding == "ascii":
+        return _read_ascii(header, fields, n, body)
+    dtype = _dtype(fields)
+    raw = _binary_body(body, n, dtype) if encoding == "binary" else _compressed_body(body, n, dtype)
+    records = raw if encoding == "binary" else _from_columns(raw, n, dtype)
+    points = np.column_stack([records[a].astype(np.float64) for a in "xyz"])
+    return PcdData(header, fields, encoding, points, records=records)
+
+
+def _split_header(data):
+    keys, pos, lineno = {}, 0, 0
+    while pos < len(data):
+        nl = data.find(b"\n", pos)
+        end = len(data) if nl < 0 else nl + 1
+        line = data[pos:end].decode("ascii", errors="replace").strip()
+        pos, lineno = end, lineno + 1
+        if not line or line.startswith("#"):
+            continue
+        words = line.split()
+        if words[0] in keys:
+            raise PcdError(f"header line {lineno}: {words[0]} appears twice")
+        keys[words[0]] = words[1:]
+        if words[0] == "DATA":
+            if len(words) != 2:
+                raise PcdError(f"header line {lineno}: bad DATA line {line!r}")
+            return data[:pos], data[pos:], keys
+    raise PcdError("not a PCD file (no DATA line)")
+
+
+def _fields(keys):
+    for key in ("FIELDS", "SIZE", "TYPE"):
+        if key not in keys:
+            raise PcdError(f"the header has no {key} line")
+    names = keys["FIELDS"]
+    counts = keys.get("COUNT", ["1"] * len(names))
+    if not len(names) == len(keys["SIZE"]) == len(keys["TYPE"]) == len(counts):
+        raise PcdError(f"FIELDS, SIZE, TYPE and COUNT disagree in length "
+                       f"({len(names)}, {len(keys['SIZE'])}, {len(keys['TYPE'])}, {len(counts)})")
+    fields = []
+    for name, size, kind, count in zip(names, keys["SIZE"], keys["TYPE"], counts):
+        if not (size.isdigit() and count.isdigit()) or (kind, int(size)) not in _TYPES or int(count) < 1:
+            raise PcdError(f"field {name!r}: unsupported TYPE {kind} SIZE {size} COUNT {count}")
+        fields.append((name, kind, int(size), int(count)))
+    for axis in "xyz":
+        found = [f for f in fields if f[0] == axis]
+        if len(found) != 1 or found[0][3] != 1:
+            raise PcdError(f"the header needs exactly one field {axis!r} with COUNT 1 (FIELDS {' '.join(names)})")
+    return fields
+
+
+def _point_count(keys):
+    try:
+        width = int(keys["WIDTH"][0])
+        height = int(keys.get("HEIGHT", ["1"])[0])
+        points = int(keys["POINTS"][0]) if "POINTS" in keys else width * height
+    except (KeyError, IndexError, ValueError):
+        raise PcdError("WIDTH, HEIGHT or POINTS missing or not an integer") from None
+    if width * height != points:
+        raise PcdError(f"WIDTH x HEIGHT = {width} x {height} disagrees with POINTS {points}")
+    return points
+
+
+def _unique_names(fields):
+    seen, names = set(), []
+    for i, (name, *_rest) in enumerate(fields):
+        unique = name if name and name not in seen else f"_field{i}"
+        seen.add(unique)
+        names.append(unique)
+    return names
+
+
+def _dtype(fields):
+    return np.dtype([(u, _TYPES[(k, s)], (c,)) if c > 1 else (u, _TYPES[(k, s)])
+                     for u, (_, k, s, c) in zip(_unique_names(fields), fields)])
+
+
+def _binary_body(body, n, dtype):
+    need = n * dtype.itemsize
+    if len(body) != need:
+        raise PcdError(f"POINTS {n} x {dtype.itemsize} bytes = {need} bytes of data, the body has {len(body)}")
+    return np.frombuffer(body, dtype=dtype).copy()
+
+
+def _compressed_body(body, n, dtype):
+    if len(body) < 8:
+        raise PcdError("binary_compressed body shorter than its 8-byte size prefix")
+    packed, unpacked = struct.unpack("<II", body[:8])
+    if len(body) - 8 != packed:
+        raise PcdError(f"the compressed block declares {packed} bytes, the body holds {len(body) - 8}")
+    if unpacked != n * dtype.itemsize:
+        raise PcdError(f"the compressed block unpacks to {unpacked} bytes, "
+                       f"POINTS {n} x {dtype.itemsize} bytes = {n * dtype.itemsize}")
+    return lzf_decompress(body[8:], unpacked)
+
+
+def _from_columns(raw, n, dtype):
+    records = np.zeros(n, dtype=dtype)
+    pos = 0
+    for name in dtype.names:
+        sub = dtype[name]
+        size = n * sub.itemsize
+        records[name] = np.frombuffer(raw[pos:pos + size], dtype=sub.base).reshape(records[name].shape)
+        pos += size
+    return records
+
+
+def _to_columns(records):
+    return b"".join(np.ascontiguousarray(records[name]).tobytes() for name in records.dtype.names)
+
+
+def _read_ascii(header, fields, n, body):
+    lines = split_lines(body)
+    width = sum(c for *_rest, c in fields)
+    offsets = np.cumsum([0] + [c for *_rest, c in fields])
+    cols = tuple(int(offsets[[f[0] for f in fields].index(a)]) for a in "xyz")
+    types = {f[0]: _TYPES[(f[1], f[2])] for f in fields if f[0] in "xyz"}
+    first = header.count(b"\n") + 1
+    rows, coords = [], []
+    for i, line in enumerate(lines):
+        tokens = line.split()
+        if not tokens:
+            continue
+        if len(tokens) != width:
+            raise PcdError(f"line {first + i}: {len(tokens)} values, the fields need {width}")
+        try:
+            coords.append(parse_coords(tokens, cols, first + i))
+        except TextFormatError as exc:
+            raise PcdError(str(exc)) from None
+        rows.append(i)
+    if len(rows) != n:
+        raise PcdError(f"POINTS {n} disagrees with the {len(rows)} data lines")
+    points = np.asarray(coords, dtype=np.float64).reshape(-1, 3)
+    kinds = tuple(_kind(types[a]) for a in "xyz")
+    for i, a in enumerate("xyz"):
+        if kinds[i] == "f4":
+            points[:, i] = points[:, i].astype(np.float32)
+    return PcdData(header, fields, "ascii", points, lines=lines, rows=np.asarray(rows, dtype=np.int64),
+                   cols=cols, kinds=kinds)
+
+
+def _kind(dtype):
+    dtype = np.dtype(dtype)
+    if dtype.kind == "f":
+        return "f4" if dtype.itemsize == 4 else "f8"
+    return "i"
+
+
+def write_pcd(pcd, points):
+    """Serialise a PCD with new coordinates, everything else unchanged.
+
+    Parameters
+    ----------
+    pcd : PcdData
+    points : (n, 3) float
+
+    Returns
+    -------
+    bytes
+    """
+    points = np.asarray(points, dtype=np.float64)
+    if points.shape != pcd.points.shape:
+        raise PcdError(f"{len(points)} points given, the file holds {len(pcd.points)}")
+    if pcd.encoding == "ascii":
+        return pcd.header + rewrite_lines(pcd.lines, pcd.rows, pcd.cols, pcd.kinds, pcd.points, points)
+    records = pcd.records.copy()
+    for i, a in enumerate("xyz"):
+        records[a] = _cast(points[:, i], records.dtype[a])
+    if pcd.encoding == "binary":
+        return pcd.header + records.tobytes()
+    raw = _to_columns(records)
+    packed = lzf_compress(raw)
+    return pcd.header + struct.pack("<II", len(packed), len(raw)) + packed
+
+
+def _cast(values, dtype):
+    if dtype.kind == "f":
+        return values.astype(dtype)
+    info = np.iinfo(dtype)
+    rounded = np.rint(values)
+    if rounded.min() < info.min or rounded.max() > info.max:
+        raise PcdError(f"coordinates do not fit the field type {dtype}")
+    return rounded.astype(dtype)
+
+
+def pcd_from_points(points):
+    """A new binary PCD of bare float64 coordinates.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+
+    Returns
+    -------
+    bytes
+    """
+    points = np.asarray(points, dtype="<f8")
+    n = len(points)
+    head = ("# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z\nSIZE 8 8 8\n"
+            f"TYPE F F F\nCOUNT 1 1 1\nWIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\n"
+            f"POINTS {n}\nDATA binary\n")
+    return head.encode("ascii") + np.ascontiguousarray(points).tobytes()
+
+
+def lzf_decompress(data, size):
+    """Decode an LZF block.
+
+    Parameters
+    ----------
+    data : bytes
+    size : int
+        Expected decoded length.
+
+    Returns
+    -------
+    bytes
+    """
+    out = bytearray()
+    i, n = 0, len(data)
+    try:
+        while i < n:
+            ctrl = data[i]
+            i += 1
+            if ctrl < 32:
+                if i + ctrl + 1 > n:
+                    raise PcdError("corrupt LZF data (literal run past the end)")
+                out += data[i:i + ctrl + 1]
+                i += ctrl + 1
+                continue
+            length = ctrl >> 5
+            if length == 7:
+                length += data[i]
+                i += 1
+            ref = len(out) - ((ctrl & 0x1F) << 8) - data[i] - 1
+            i += 1
+            _copy_back(out, ref, length + 2)
+    except IndexError:
+        raise PcdError("corrupt LZF data (back reference past the end)") from None
+    if len(out) != size:
+        raise PcdError(f"LZF data decodes to {len(out)} bytes, the header says {size}")
+    return bytes(out)
+
+
+def _copy_back(out, ref, length):
+    if ref < 0:
+        raise PcdError("corrupt LZF data (back reference before the start)")
+    if ref + length <= len(out):
+        out += out[ref:ref + length]
+        return
+    pattern = out[ref:]
+    out += (pattern * (length // len(pattern) + 1))[:length]
+
+
+def lzf_compress(data):
+    """Encode bytes as LZF: literals plus repeats at short distances.
+
+    Parameters
+    ----------
+    data : bytes
+
+    Returns
+    -------
+    bytes
+    """
+    out = bytearray()
+    pos = 0
+    for start, length, dist in _repeats(np.frombuffer(data, dtype=np.uint8)):
+        if start < pos:
+            start, length = pos, length - (pos - start)
+        if length < 3:
+            continue
+        _literals(out, data[pos:start])
+        while length >= 3:
+            chunk = min(length, 264)
+            _back_reference(out, chunk, dist)
+            start, length = start + chunk, length - chunk
+        pos = start
+    _literals(out, data[pos:])
+    return bytes(out)
+
+
+def _repeats(buf):
+    """(start, length, distance) runs where buf[i] == buf[i - distance], by start."""
+    found = []
+    for dist in _REPEAT_DISTANCES:
+        if len(buf) <= dist:
+            break
+        same = np.concatenate([[False], buf[dist:] == buf[:-dist], [False]])
+        edges = np.flatnonzero(same[1:] != same[:-1])
+        starts, ends = edges[0::2] + dist, edges[1::2] + dist
+        keep = ends - starts >= _MIN_REPEAT
+        found += zip(starts[keep].tolist(), (ends - starts)[keep].tolist(), [dist] * int(keep.sum()))
+    found.sort(key=lambda r: (r[0], -r[1]))
+    return found
+
+
+def _literals(out, chunk):
+    full = len(chunk) // 32
+    if full:
+        block = np.empty((full, 33), dtype=np.uint8)
+        block[:, 0] = 31
+        block[:, 1:] = np.frombuffer(chunk, dtype=np.uint8, count=full * 32).reshape(full, 32)
+        out += block.tobytes()
+    rest = chunk[full * 32:]
+    if rest:
+        out.append(len(rest) - 1)
+        out += rest
+
+
+def _back_reference(out, length, dist):
+    off, code = dist - 1, length - 2
+    if code < 7:
+        out += bytes(((code << 5) | (off >> 8), off & 0xFF))
+    else:
+        out += bytes(((7 << 5) | (off >> 8), code - 7, off & 0xFF))

@@ -1,0 +1,162 @@
+"""Attribution: which issued copy a suspect came from, read from the ledger.
+
+One path for ``pointmark detect --ledger`` and ``pointmark scan``:
+
+1. :func:`check_asset` rebuilds (or loads from the basis store) each
+   reference of a candidate asset, verifies it against the digests recorded
+   at embedding, registers the suspect and estimates the coefficient
+   differences once per reference, then scores every issued recipient of
+   every key id the caller holds, generation by generation (each issued copy
+   has its own fingerprint).
+2. :func:`decide` pools the checks of one suspect: the threshold and the
+   p-values are corrected for every recipient of every asset, key and
+   generation that was scored.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections import defaultdict
+
+import numpy as np
+
+from ..io.pointcloud import InputError, read_points, sha256_file
+from ..kernels import fingerprint
+from ..watermark import WatermarkParams, estimate_differences, fingerprint_length, fingerprint_observation
+from .reference import load_reference
+from .tasks import copy_label
+
+__all__ = ["params_from_row", "check_asset", "decide", "usable_rows", "TOP"]
+
+TOP = 8          # best scores kept per reference and key, beyond those over the floor
+FLOOR = 4.0      # scores kept whatever their rank (an accusation needs more than 5 at any scale)
+
+
+def params_from_row(row):
+    """WatermarkParams recorded in a ledger row."""
+    record = json.loads(row["params_json"])
+    seeds = record.get("seeds")
+    record["seeds"] = None if seeds is None else tuple(tuple(s) if isinstance(s, list) else s for s in seeds)
+    return WatermarkParams(**record)
+
+
+def usable_rows(rows, secret_fingerprints):
+    """Issued rows whose key fingerprint matches a secret the caller holds."""
+    return [r for r in rows if r["status"] == "ok" and r["mark"] == "fingerprint"
+            and r["key_fingerprint"] in secret_fingerprints]
+
+
+def check_asset(suspect_path, original_path, rows, materials, store, detect_params):
+    """Score every issued recipient of one asset against one suspect.
+
+    Parameters
+    ----------
+    suspect_path, original_path : str or Path
+    rows : list of dict
+        Issued ledger rows of the asset (status ok), any generations.
+    materials : dict key_id -> bytes
+        Derived key material of the key ids the caller holds.
+    store : str or Path
+        The basis store.
+    detect_params : DetectParams
+
+    Returns
+    -------
+    dict
+        ``groups`` (one per reference and key id: asset, key id, recipients
+        scored, their best scores, presence p-value, registration) and timings.
+
+    Raises
+    ------
+    InputError
+        The original is missing or no longer the bytes the ledger recorded.
+    ReferenceMismatch
+        The rebuilt reference differs from the one recorded at embedding.
+    """
+    suspect = read_points(suspect_path).points
+    original = read_points(original_path).points
+    recorded_sha = rows[0]["source_sha256"]
+    if sha256_file(original_path) != recorded_sha:
+        raise InputError(f"{original_path}: the original's bytes differ from those recorded in the ledger "
+                         f"(sha256 {recorded_sha[:12]}...)")
+    by_ref = defaultdict(list)
+    for r in rows:
+        by_ref[r["reference_key"]].append(r)
+    groups, seconds = [], {"registration": 0.0, "estimate": 0.0, "scoring": 0.0}
+    for ref_key, ref_rows in sorted(by_ref.items()):
+        params = params_from_row(ref_rows[0])
+        ref = load_reference(original, params, store, ref_key,
+                             {"membership": ref_rows[0]["cluster_membership_digests"],
+                              "basis": ref_rows[0]["cluster_basis_digests"]})
+        est = estimate_differences(suspect - ref.centre, original - ref.centre, ref.specs, ref.bases,
+                                   detect_params, params.displacement)
+        seconds["registration"] += est["seconds_registration"]
+        seconds["estimate"] += est["seconds_estimate"]
+        t0 = time.perf_counter()
+        y = fingerprint_observation(est, ref.specs, params)
+        for key_id, generation_id in sorted({(r["key_id"], r["generation_id"]) for r in ref_rows}):
+            if key_id in materials:
+                rows_g = [r for r in ref_rows if (r["key_id"], r["generation_id"]) == (key_id, generation_id)]
+                groups.append(_score_group(y, ref, params, rows_g, materials[key_id], est["registration"]))
+        seconds["scoring"] += time.perf_counter() - t0
+    return {"asset_key": rows[0]["asset_key"], "groups": groups, "seconds": seconds}
+
+
+def _score_group(y, ref, params, rows, material, registration):
+    recipients = sorted({r["recipient"] for r in rows})
+    bank = fingerprint.chip_bank(material, copy_label(rows[0]["asset_key"], rows[0]["generation"]), recipients,
+                                 fingerprint_length(len(ref.specs), params))
+    s = fingerprint.scores(y, bank)
+    keep = np.union1d(np.argsort(-s, kind="stable")[:TOP], np.flatnonzero(s >= FLOOR))
+    generations = defaultdict(list)
+    for r in rows:
+        generations[r["recipient"]].append((int(r["generation"]), r["output_path"]))
+    return {
+        "asset_key": rows[0]["asset_key"], "key_id": rows[0]["key_id"], "reference_key": rows[0]["reference_key"],
+        "generation": int(rows[0]["generation"]),
+        "n_recipients": len(recipients), "presence_p": fingerprint.presence(s),
+        "best": [{"recipient": recipients[i], "score": float(s[i]), "copies": sorted(generations[recipients[i]])}
+                 for i in keep],
+        "registration": registration,
+    }
+
+
+def decide(checks, epsilon):
+    """Verdict of one suspect from all its checks, corrected for everything scored.
+
+    Parameters
+    ----------
+    checks : list of dict (from :func:`check_asset`)
+    epsilon : float
+        Probability of accusing any innocent, per suspect.
+
+    Returns
+    -------
+    dict
+        verdict ("match", "inconclusive" or "no match"), accused (recipient,
+        asset, key id, score, corrected p-value, margin, copies), n_checked,
+        threshold, best_innocent_score.
+    """
+    groups = [g for c in checks for g in c["groups"]]
+    n_checked = sum(g["n_recipients"] for g in groups)
+    t = fingerprint.threshold(max(n_checked, 1), epsilon)
+    scored = [(b["score"], g, b) for g in groups for b in g["best"]]
+    accused = sorted((x for x in scored if x[0] >= t), key=lambda x: -x[0])
+    innocent = max((x[0] for x in scored if x[0] < t), default=0.0)
+    result = {"n_checked": n_checked, "threshold": t, "best_innocent_score": innocent,
+              "accused": [{"recipient": b["recipient"], "asset_key": g["asset_key"], "key_id": g["key_id"],
+                           "score": s, "p_value": fingerprint.corrected_p(s, n_checked), "margin": s - innocent,
+                           "copies": b["copies"], "registration": g["registration"]}
+                          for s, g, b in accused]}
+    # a mark is there but nobody clears the threshold: say so, never "no match"
+    if accused:
+        result["verdict"] = "match"
+    elif any(g["presence_p"] * len(groups) < epsilon for g in groups):
+        result["verdict"] = "inconclusive"
+    else:
+        result["verdict"] = "no match"
+    best = max(scored, key=lambda x: x[0], default=None)
+    result["best_score"] = None if best is None else best[0]
+    result["p_value"] = 1.0 if best is None else fingerprint.corrected_p(best[0], n_checked)
+    return result

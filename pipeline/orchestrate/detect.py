@@ -1,0 +1,92 @@
+"""``pointmark detect --ledger``: attribute one suspect from the ledger alone, no config.
+
+The ledger names the originals, the parameters of every generation and the
+recipients; the secret (environment or key file) must match at least one key
+fingerprint recorded there.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from ..io.ledger import Ledger
+from ..io.pointcloud import InputError, read_points
+from ..io.secrets import SecretError
+from ..kernels import keys
+from ..kernels.descriptor import d2_descriptor, descriptor_distance
+from .attribute import check_asset, decide, usable_rows
+
+__all__ = ["detect_from_ledger", "held_rows", "candidate_groups"]
+
+
+def held_rows(ledger, secret):
+    """Issued rows of the ledger whose key the secret opens, and their key materials.
+
+    Raises
+    ------
+    InputError
+        The folder holds no issued copy.
+    SecretError
+        The secret matches none of the key fingerprints recorded.
+    """
+    rows = ledger.rows()
+    if not rows:
+        raise InputError(f"{ledger.folder}: no issued copy in this ledger (is it output.manifests of a run?)")
+    fingerprints = {keys.key_fingerprint(secret, salt) for salt in {r["key_salt"] for r in rows}}
+    usable = usable_rows(rows, fingerprints)
+    if not usable:
+        raise SecretError(f"{ledger.folder}: the secret matches none of the key fingerprints of the issued copies "
+                          f"(wrong or rotated secret?)")
+    materials = {k: keys.derive_key_material(secret, k) for k in {r["key_id"] for r in usable}}
+    return usable, materials
+
+
+def candidate_groups(rows, asset=None):
+    """Issued rows grouped by (asset, source sha256): one original file each."""
+    groups = defaultdict(list)
+    for r in rows:
+        if asset is None or r["asset_key"] == asset:
+            groups[(r["asset_key"], r["source_sha256"])].append(r)
+    if asset is not None and not groups:
+        raise InputError(f"--asset {asset}: no issued copy of this asset under the keys held")
+    return groups
+
+
+def _rank(suspect_path, groups, top_k):
+    if len(groups) <= top_k:
+        return list(groups)
+    points = read_points(suspect_path).points
+    mine = d2_descriptor(points - points.mean(axis=0))
+    names = list(groups)
+    refs = []
+    for name in names:
+        original = read_points(groups[name][0]["source_path"]).points
+        refs.append(d2_descriptor(original - original.mean(axis=0)))
+    order = np.argsort(np.atleast_1d(descriptor_distance(mine, np.array(refs))), kind="stable")
+    return [names[i] for i in order[:top_k]]
+
+
+def detect_from_ledger(suspect, ledger_dir, secret, detect_params, *, asset=None, store=None, top_k=3):
+    """Attribute one suspect file.
+
+    Returns
+    -------
+    dict
+        The verdict of :func:`pipeline.orchestrate.attribute.decide`, plus
+        ``suspect``, ``candidates`` and per-check timings.
+    """
+    ledger = Ledger(ledger_dir)
+    read_points(suspect)                         # a bad suspect stops here, before any work
+    rows, materials = held_rows(ledger, secret)
+    groups = candidate_groups(rows, asset)
+    store = Path(store) if store else ledger.folder / "bases"
+    candidates = _rank(suspect, groups, top_k)
+    checks = [check_asset(suspect, groups[c][-1]["source_path"], groups[c], materials, store, detect_params)
+              for c in candidates]
+    result = decide(checks, detect_params.epsilon)
+    result.update(suspect=str(suspect), candidates=[c[0] for c in candidates],
+                  seconds=[c["seconds"] for c in checks], ledger_version=ledger.version())
+    return result

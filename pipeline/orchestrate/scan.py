@@ -1,0 +1,239 @@
+"""Leak scans on Dask: which asset, and which recipient, suspect files came from.
+
+Per suspect: (1) a suspect that is a catalogue original's own bytes is no
+match; (2) an exact sha256 match with an issued copy attributes at once;
+(3) otherwise the top-K catalogue assets by shape descriptor are checked
+through the one attribution path (:mod:`pipeline.orchestrate.attribute`),
+each against every recipient issued under the keys held, and the verdict is
+corrected for everything scored.
+
+Each suspect ends as exactly one of match, inconclusive, no match or failed.
+A failed suspect is counted, sets exit status 3 and is retried by the next
+scan; a suspect is skipped only when it was scanned against the same ledger
+and catalogue versions.
+
+Exit status: 0 no match, 1 at least one match, 2 bad config or secret,
+3 some suspects failed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import sys
+import time
+from collections import defaultdict
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+
+from .. import __version__, config as config_mod
+from ..io.catalog import discover_assets, read_catalogue
+from ..io.ledger import Ledger
+from ..io.manifest import read_rows, write_rows
+from ..io.pointcloud import read_points, sha256_file
+from ..kernels.descriptor import d2_descriptor, descriptor_distance
+from .attribute import check_asset, decide
+from .detect import held_rows
+
+__all__ = ["SCAN_SCHEMA", "run_scan", "read_scan"]
+
+SCAN_SCHEMA = pa.schema([
+    ("schema_version", pa.int16()),
+    ("suspect_path", pa.string()),
+    ("suspect_sha256", pa.string()),
+    ("n_points", pa.int64()),
+    ("verdict", pa.string()),
+    ("candidate_asset", pa.string()),
+    ("candidates", pa.list_(pa.string())),
+    ("recipient", pa.string()),
+    ("key_id", pa.string()),
+    ("generation", pa.int32()),
+    ("accused_json", pa.string()),
+    ("score", pa.float64()),
+    ("p_value", pa.float64()),
+    ("threshold", pa.float64()),
+    ("margin", pa.float64()),
+    ("n_checked", pa.int64()),
+    ("registration_fitness", pa.float64()),
+    ("registration_residual_rel_diag", pa.float64()),
+    ("registration_scale", pa.float64()),
+    ("ledger_version", pa.string()),
+    ("catalogue_version", pa.string()),
+    ("seconds_candidates", pa.float64()),
+    ("seconds_registration", pa.float64()),
+    ("seconds_detection", pa.float64()),
+    ("status", pa.string()),
+    ("error", pa.string()),
+    ("tool_version", pa.string()),
+    ("scanned_at", pa.timestamp("ms", tz="UTC")),
+])
+
+
+def triage(suspect_path, descriptors, top_k):
+    """Read a suspect, hash it, rank candidate assets by shape descriptor."""
+    t0 = time.perf_counter()
+    points = read_points(suspect_path).points
+    names = list(descriptors)
+    dist = np.atleast_1d(descriptor_distance(d2_descriptor(points - points.mean(axis=0)),
+                                             np.array([descriptors[k] for k in names])))
+    order = np.argsort(dist, kind="stable")[:top_k]
+    return {"path": str(suspect_path), "sha256": sha256_file(suspect_path), "n_points": len(points),
+            "candidates": [names[i] for i in order], "seconds": time.perf_counter() - t0}
+
+
+def _reference(cfg, secret):
+    sc = cfg["scan"]
+    for name in ("suspects", "catalogue"):
+        if not sc[name]:
+            raise config_mod.ConfigError(f"config: scan.{name}: required for a scan")
+    ledger = Ledger(sc["manifests"] or cfg["output"]["manifests"])
+    rows, materials = held_rows(ledger, secret)          # refuses a secret that opens nothing
+    catalogue = [r for r in read_catalogue(sc["catalogue"]) if r["status"] == "ok"]
+    cat_version = hashlib.sha256("\n".join(sorted(r["sha256"] for r in catalogue)).encode()).hexdigest()[:16]
+    issued = defaultdict(list)
+    for r in rows:
+        issued[r["asset_key"]].append(r)
+    originals = {r["sha256"] for r in catalogue} | {r["source_sha256"] for r in rows}
+    # an issued copy with its original's bytes is no copy: it never attributes anything
+    by_sha = {r["output_sha256"]: r for r in rows if r["output_sha256"] not in originals}
+    descriptors = {r["asset_key"]: r["descriptor"] for r in catalogue if r["asset_key"] in issued}
+    return ledger, materials, issued, by_sha, originals, descriptors, cat_version
+
+
+def _result_path(out, sha, versions, failed=False):
+    if failed:
+        return Path(out) / f"{sha[:32]}.failed.parquet"
+    return Path(out) / f"{sha[:32]}-{versions[0]}-{versions[1]}.parquet"
+
+
+def run_scan(cfg, secret, *, force=False):
+    """``pointmark scan``: returns the exit status."""
+    from distributed import as_completed
+
+    from .run import start_client
+
+    sc = cfg["scan"]
+    ledger, materials, issued, by_sha, originals, descriptors, cat_version = _reference(cfg, secret)
+    versions = (ledger.version(), cat_version)
+    suspects = [a.path for a in discover_assets(sc["suspects"])]
+    detect_params = config_mod.detect_params(cfg)
+    store = str(Path(cfg["output"]["bases"] or ledger.folder / "bases"))
+    out = Path(sc["out"])
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    counts = {"match": 0, "no match": 0, "inconclusive": 0, "failed": 0, "skipped": 0}
+    client, cluster = start_client(cfg)
+    try:
+        triages = {client.submit(triage, str(p), descriptors, sc["top_k"], pure=False): p for p in suspects}
+        pending = as_completed(list(triages))
+        waiting, open_checks = {}, {}
+        for fut in pending:
+            if fut in triages:
+                path = triages.pop(fut)
+                if fut.status != "finished":
+                    _record(out, versions, {"suspect_path": str(path)}, "failed", error=_text(fut.exception()))
+                    counts["failed"] += 1
+                    continue
+                info = fut.result()
+                if not force and _result_path(out, info["sha256"], versions).exists():
+                    counts["skipped"] += 1
+                    continue
+                verdict = _quick(info, by_sha, originals, out, versions)
+                if verdict:
+                    counts[verdict] += 1
+                    continue
+                info["checks"], info["errors"] = [], []
+                subs = [client.submit(check_asset, info["path"], issued[a][-1]["source_path"], issued[a], materials,
+                                      store, detect_params, pure=False) for a in info["candidates"]]
+                for sub in subs:
+                    waiting[sub] = info
+                    pending.add(sub)
+                open_checks[info["path"]] = len(subs)
+                if not subs:
+                    counts[_finish(out, versions, info, detect_params.epsilon)] += 1
+            else:
+                info = waiting.pop(fut)
+                if fut.status == "finished":
+                    info["checks"].append(fut.result())
+                else:
+                    info["errors"].append(_text(fut.exception()))
+                open_checks[info["path"]] -= 1
+                if open_checks[info["path"]] == 0:
+                    verdict = _finish(out, versions, info, detect_params.epsilon)
+                    counts[verdict] += 1
+                    print(f"[pointmark] scan: {info['path']}: {verdict}", file=sys.stderr, flush=True)
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+    print(f"scanned {len(suspects)} suspects in {time.perf_counter() - t0:.0f}s: {counts['match']} match, "
+          f"{counts['inconclusive']} inconclusive, {counts['no match']} no match, {counts['failed']} failed, "
+          f"{counts['skipped']} already scanned; results in {out}")
+    if counts["failed"]:
+        return 3
+    return 1 if counts["match"] else 0
+
+
+def _text(exc):
+    return str(exc) if isinstance(exc, ValueError) else f"{type(exc).__name__}: {exc}"
+
+
+def _quick(info, by_sha, originals, out, versions):
+    """Verdicts that need no detection: an original's own bytes, an exact issued copy."""
+    if info["sha256"] in originals:
+        _record(out, versions, info, "no match", error="the suspect is a catalogue original's own bytes")
+        return "no match"
+    row = by_sha.get(info["sha256"])
+    if row is None:
+        return None
+    _record(out, versions, info, "match", candidate_asset=row["asset_key"], recipient=row["recipient"],
+            key_id=row["key_id"], generation=row["generation"], p_value=0.0,
+            accused_json=json.dumps([{"recipient": row["recipient"], "asset_key": row["asset_key"],
+                                      "exact_sha256": True}]))
+    return "match"
+
+
+def _finish(out, versions, info, epsilon):
+    if info["errors"]:     # a check that raised is never "no match": retried next scan
+        _record(out, versions, info, "failed", error="; ".join(info["errors"]))
+        return "failed"
+    result = decide(info["checks"], epsilon)
+    top = result["accused"][0] if result["accused"] else None
+    reg = top["registration"] if top else next((g["registration"] for c in info["checks"] for g in c["groups"]), {})
+    seconds = [c["seconds"] for c in info["checks"]]
+    _record(out, versions, info, result["verdict"],
+            candidate_asset=top["asset_key"] if top else None, recipient=top["recipient"] if top else None,
+            key_id=top["key_id"] if top else None, generation=top["copies"][-1][0] if top else None,
+            accused_json=json.dumps([{k: a[k] for k in ("recipient", "asset_key", "key_id", "score", "p_value",
+                                                        "margin", "copies")} for a in result["accused"]]),
+            score=result["best_score"], p_value=result["p_value"], threshold=result["threshold"],
+            margin=top["margin"] if top else None, n_checked=result["n_checked"],
+            registration_fitness=reg.get("fitness"), registration_residual_rel_diag=reg.get("residual_rel_diag"),
+            registration_scale=reg.get("scale"),
+            seconds_registration=sum(s["registration"] for s in seconds),
+            seconds_detection=sum(s["estimate"] + s["scoring"] for s in seconds))
+    return result["verdict"]
+
+
+def _record(out, versions, info, verdict, **columns):
+    """Write the suspect's one result row (a failed suspect keeps one file, overwritten on retry)."""
+    now = datetime.now(timezone.utc).replace(microsecond=0)
+    sha = info.get("sha256") or hashlib.sha256(info["suspect_path"].encode()).hexdigest()
+    row = {"suspect_path": info.get("path", info.get("suspect_path")), "suspect_sha256": info.get("sha256"),
+           "n_points": info.get("n_points"), "candidates": info.get("candidates"),
+           "seconds_candidates": info.get("seconds"), "verdict": verdict,
+           "status": "failed" if verdict == "failed" else "ok", "ledger_version": versions[0],
+           "catalogue_version": versions[1], "tool_version": __version__, "scanned_at": now, **columns}
+    write_rows(_result_path(out, sha, versions, failed=verdict == "failed"), [row], SCAN_SCHEMA)
+
+
+def read_scan(folder):
+    """All result rows of a scan folder (temporary files of interrupted writers are ignored)."""
+    rows = []
+    for path in sorted(Path(folder).glob("*.parquet")):
+        if not path.name.startswith("."):
+            rows.extend(read_rows(path))
+    return rows

@@ -1,0 +1,92 @@
+"""Attribution from the ledger alone: `pointmark detect SUSPECT --ledger DIR`, and its refusals."""
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from pipeline.io.ledger import Ledger
+from pipeline.io.pointcloud import read_points, write_array, sha256_file
+from pipeline.kernels import attacks
+from tests.conftest import ROOT
+from tests.orchestrate.test_run import SECRET, _run, make_catalogue, write_config
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def issued(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("detect")
+    src = make_catalogue(tmp / "assets", n_assets=2)
+    job, counts = _run(write_config(tmp, src), serial=True)
+    assert counts["ok"] == 2
+    return tmp, job.manifests
+
+
+def _cli(tmp, *argv, secret=SECRET):
+    env = dict(os.environ, PYTHONPATH=str(ROOT), POINTMARK_SECRET=secret)
+    return subprocess.run([sys.executable, "-m", "pipeline.cli", *argv], cwd=tmp, env=env, capture_output=True,
+                          text=True, timeout=600)
+
+
+def test_detect_from_the_ledger_needs_no_config(issued):
+    tmp, ledger = issued
+    points = read_points(tmp / "out" / "marked" / "bob" / "asset-1.pcd").points
+    leak = attacks.apply_chain(points, [("random_similarity", None), ("noise", 0.003), ("shuffle", None)], 4)
+    write_array(tmp, "found", leak, "ply")
+    res = _cli(tmp, "detect", "found.ply", "--ledger", str(ledger), "--json")
+    assert res.returncode == 0, res.stderr
+    out = json.loads(res.stdout)
+    assert out["verdict"] == "match" and [a["recipient"] for a in out["accused"]] == ["bob"]
+    accused = out["accused"][0]
+    assert accused["asset_key"] == "asset-1" and accused["p_value"] < 1e-6 and accused["margin"] > 3
+    assert out["n_checked"] == 4 and SECRET not in res.stdout + res.stderr
+
+
+def test_an_unmarked_original_is_no_match(issued):
+    tmp, ledger = issued
+    res = _cli(tmp, "detect", str(tmp / "assets" / "asset-0.ply"), "--ledger", str(ledger), "--json")
+    out = json.loads(res.stdout)
+    assert res.returncode == 0 and out["verdict"] == "no match" and out["accused"] == []
+
+
+@pytest.mark.parametrize("secret, needle", [("8bytes!!", "at least 16"),
+                                            ("a-different-secret-entirely", "matches none of the key")])
+def test_a_short_or_wrong_secret_is_refused(issued, secret, needle):
+    tmp, ledger = issued
+    res = _cli(tmp, "detect", str(tmp / "out" / "marked" / "bob" / "asset-0.ply"), "--ledger", str(ledger),
+               secret=secret)
+    assert res.returncode == 2 and needle in res.stderr and len(res.stderr.strip().splitlines()) == 1
+    assert secret not in res.stderr
+
+
+def test_an_unmarked_original_is_never_a_match_whatever_the_hash_table_holds(issued, tmp_path):
+    """A forged ledger row claims the original's own bytes as an issued copy: the scan still says no match."""
+    import yaml
+
+    from pipeline.io.catalog import catalogue_record, discover_assets, write_catalogue
+    from pipeline.orchestrate.scan import read_scan
+
+    import shutil
+
+    tmp, shared = issued
+    ledger = tmp_path / "ledger"
+    shutil.copytree(shared, ledger)             # the forgery stays out of the other tests' ledger
+    original = tmp / "assets" / "asset-0.ply"
+    row = next(r for r in Ledger(ledger).rows() if r["asset_key"] == "asset-0")
+    Ledger(ledger).append([{**row, "recipient": "mallory", "output_sha256": sha256_file(original),
+                            "output_path": str(original)}])
+    (tmp_path / "suspects").mkdir()
+    (tmp_path / "suspects" / "found.ply").write_bytes(original.read_bytes())
+    write_catalogue([catalogue_record(a) for a in discover_assets(tmp / "assets")], tmp_path / "catalog.parquet")
+    cfg = yaml.safe_load((tmp / "out.yaml").read_text())
+    cfg["output"]["manifests"] = str(ledger)
+    cfg["scan"] = {"suspects": str(tmp_path / "suspects"), "catalogue": str(tmp_path / "catalog.parquet"),
+                   "out": str(tmp_path / "scan")}
+    (tmp_path / "scan.yaml").write_text(yaml.safe_dump(cfg))
+    res = _cli(tmp_path, "scan", str(tmp_path / "scan.yaml"))
+    assert res.returncode == 0, res.stdout + res.stderr
+    [result] = read_scan(tmp_path / "scan")
+    assert result["verdict"] == "no match" and result["recipient"] is None
