@@ -13,7 +13,11 @@ import logging
 import sys
 import time
 
-import numpy as np
+from . import threads
+
+threads.pin()   # before NumPy loads BLAS: one thread per process, as on the workers
+
+import numpy as np  # noqa: E402
 
 from . import __version__, config as config_mod
 from .io.pointcloud import InputError, check_distinct, check_output, read_points, write_points

@@ -337,3 +337,176 @@ def register_global(suspect, original, *, spacing, target=4000, scales=(1.0, 2**
     best.tried = tried
     best.seconds = time.perf_counter() - t0
     return best
+
+
+# ---------------------------------------------------------------------------
+# Part-to-whole candidate search over a catalogue (issue 13)
+# ---------------------------------------------------------------------------
+
+INDEX_VOXEL = 4.0          # keypoint voxel, in median spacings of the cloud described
+INDEX_KEYPOINTS = 3000     # most keypoints kept per asset (and per suspect description)
+QUERY_SCALES = (1.0, 2**-0.5, 0.5, 2**0.5)   # suspect voxel factors (fewer points than issued: smaller)
+
+
+def describe(points, *, factor=1.0, max_keypoints=INDEX_KEYPOINTS, rng=0):
+    """FPFH keypoints of a cloud at ``INDEX_VOXEL * factor`` of its own median spacing.
+
+    Outliers are dropped first (:func:`dense_part`), so the voxel follows the
+    surface's sampling; at most ``max_keypoints`` are kept (seeded subsample).
+
+    Returns
+    -------
+    keypoints : (k, 3) float
+    features : (k, 33) float32, unit rows
+    """
+    dense = dense_part(np.asarray(points, dtype=np.float64))
+    keys, feats = fpfh(dense, INDEX_VOXEL * factor * median_spacing(dense))
+    if len(keys) > max_keypoints:
+        pick = np.sort(np.random.default_rng(rng).choice(len(keys), max_keypoints, replace=False))
+        keys, feats = keys[pick], feats[pick]
+    return keys, feats
+
+
+def geometry_hash(points, decimals=5):
+    """Order- and format-independent hash of a point set's geometry (sha256, hex).
+
+    Centres on the centroid, divides by the RMS distance from it, rounds to
+    ``decimals`` digits and sorts the rows, so a re-save in another format
+    (float32 or ASCII with enough digits), a re-ordering, a translation or a
+    uniform rescale give the same hash; any real edit changes it.  Rotations
+    are not undone (a rotated copy is a new geometry; the feature index finds
+    it).  A coordinate lying within float noise of a rounding boundary can
+    flip; the hash is a fast path, never the only check.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+
+    Returns
+    -------
+    str, 64 hex digits
+    """
+    p = np.asarray(points, dtype=np.float64)
+    p = p - p.mean(axis=0)
+    rms = float(np.sqrt((p**2).sum(axis=1).mean())) or 1.0
+    q = np.round(p / rms * 10**decimals).astype(np.int64)
+    q = q[np.lexsort(q.T[::-1])]
+    h = hashlib.sha256(b"pointmark-geometry-v1")
+    h.update(np.ascontiguousarray(q).tobytes())
+    return h.hexdigest()
+
+
+@dataclass
+class FeatureIndex:
+    """Local descriptors of a whole catalogue; a suspect's descriptors vote for assets.
+
+    Attributes
+    ----------
+    keys : list of str, asset keys
+    features : (N, 33) float32, unit rows, every asset's keypoint descriptors
+    owner : (N,) int32, index into ``keys`` of each row
+    hashes : list of str, :func:`geometry_hash` of each asset
+    """
+
+    keys: list
+    features: np.ndarray
+    owner: np.ndarray
+    hashes: list
+
+    def save(self, path):
+        """Write the index as a ``.npz`` file."""
+        buf = io.BytesIO()
+        np.savez(buf, keys=np.array(self.keys, dtype=str), features=self.features, owner=self.owner,
+                 hashes=np.array(self.hashes, dtype=str))
+        with open(path, "wb") as f:
+            f.write(buf.getvalue())
+
+    @classmethod
+    def load(cls, path):
+        data = np.load(path)
+        return cls([str(k) for k in data["keys"]], data["features"], data["owner"],
+                   [str(h) for h in data["hashes"]])
+
+    def exact(self, points):
+        """Asset keys whose geometry hash equals the suspect's (re-saves, re-orderings)."""
+        h = geometry_hash(points)
+        return [k for k, other in zip(self.keys, self.hashes) if other == h]
+
+    def votes(self, features, *, ratio=0.9, chunk=1024, neighbours=8):
+        """Votes per asset of one set of suspect descriptors.
+
+        Each descriptor votes for the asset of its nearest index descriptor
+        when that is clearly nearer than the nearest descriptor of any
+        other asset (Lowe's ratio test across assets: ``d1 < ratio * d_other``
+        among the ``neighbours`` nearest).
+
+        Returns
+        -------
+        (n_assets,) float
+        """
+        out = np.zeros(len(self.keys))
+        if len(features) == 0:
+            return out
+        index = self.features
+        for lo in range(0, len(features), chunk):
+            sim = features[lo:lo + chunk] @ index.T                       # (c, N)
+            top = np.argpartition(-sim, neighbours, axis=1)[:, :neighbours]
+            val = np.take_along_axis(sim, top, axis=1)
+            order = np.argsort(-val, axis=1)
+            top = np.take_along_axis(top, order, axis=1)
+            val = np.take_along_axis(val, order, axis=1)
+            dist = np.sqrt(np.maximum(2.0 - 2.0 * val, 0.0))
+            owners = self.owner[top]
+            other = owners != owners[:, :1]
+            d_other = np.where(other, dist, np.inf).min(axis=1)
+            ok = dist[:, 0] < ratio * d_other
+            np.add.at(out, owners[ok, 0], 1.0)
+        return out
+
+    def rank(self, points, top_k=3):
+        """The ``top_k`` assets a suspect most likely derives from.
+
+        An exact geometry hash puts its asset first.  Otherwise the suspect
+        is described at several voxel sizes (its sampling may differ from
+        the issued copy's); per size, votes are normalised by the suspect's
+        descriptor count, and an asset keeps its best size.
+
+        Parameters
+        ----------
+        points : (n, 3) float
+        top_k : int
+
+        Returns
+        -------
+        list of (asset_key, votes) ; votes is a share of the suspect's descriptors (inf for an exact hash)
+        """
+        exact = set(self.exact(points))
+        score = np.zeros(len(self.keys))
+        for factor in QUERY_SCALES:
+            _, feats = describe(points, factor=factor)
+            if len(feats):
+                score = np.maximum(score, self.votes(feats) / len(feats))
+        ranked = sorted(range(len(self.keys)), key=lambda i: (self.keys[i] not in exact, -score[i]))
+        return [(self.keys[i], float("inf") if self.keys[i] in exact else float(score[i]))
+                for i in ranked[:top_k]]
+
+
+def build_index(clouds):
+    """Index the local descriptors of every asset.
+
+    Parameters
+    ----------
+    clouds : dict of asset_key -> (n, 3) float
+
+    Returns
+    -------
+    FeatureIndex
+    """
+    keys, feats, owner, hashes = [], [], [], []
+    for i, (key, points) in enumerate(clouds.items()):
+        _, f = describe(points)
+        keys.append(str(key))
+        feats.append(f)
+        owner.append(np.full(len(f), i, dtype=np.int32))
+        hashes.append(geometry_hash(points))
+    return FeatureIndex(keys, np.concatenate(feats).astype(np.float32), np.concatenate(owner), hashes)

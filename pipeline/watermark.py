@@ -565,8 +565,11 @@ def _register(suspect, reference, spacing, method):
         return robust
     # a part of the asset, or the asset among clutter or junk: the principal
     # frames mean little; let the feature-based global step compete
+    # (its ICP trims by a quantile, which outliers widen: polish it with a fixed cut first)
     from . import features
 
+    robust = registration.refine_part(suspect, cKDTree(reference), reference, robust, spacing=spacing,
+                                      widths=(3.0,))
     found = features.register_global(suspect, reference, spacing=spacing)
     return found.transform if found.score > features.overlap_score(robust, suspect, reference, spacing) else robust
 

@@ -1,6 +1,7 @@
 """The command line: exit status 2 and one clear line for every kind of bad input."""
 
 import json
+import os
 import subprocess
 import sys
 
@@ -131,3 +132,12 @@ def test_console_script_is_installed():
         pytest.skip("not running from the project's .venv")
     out = subprocess.run([str(exe), "--version"], capture_output=True, text=True, check=True)
     assert out.stdout.startswith("pointmark ")
+
+
+def test_the_command_line_pins_blas_and_openmp_to_one_thread():
+    code = ("import pipeline.cli, threadpoolctl, json; "
+            "print(json.dumps([i['num_threads'] for i in threadpoolctl.threadpool_info()]))")
+    env = dict(os.environ, OMP_NUM_THREADS="4", OPENBLAS_NUM_THREADS="4", PYTHONPATH=str(ROOT))
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    counts = json.loads(out.stdout)
+    assert counts and all(n == 1 for n in counts)

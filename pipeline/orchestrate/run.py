@@ -24,7 +24,7 @@ import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .. import __version__
+from .. import __version__, threads
 from ..config import ConfigError, watermark_params
 from ..io.basis_store import BasisStore
 from ..io.catalog import check_recipient, discover_assets
@@ -41,9 +41,7 @@ log = logging.getLogger("pointmark.run")
 __all__ = ["Job", "plan_job", "run_job", "start_client", "PINNED_THREADS", "CHUNK"]
 
 # BLAS and OpenMP threads of every worker: one, so processes do not oversubscribe cores
-PINNED_THREADS = {name: "1" for name in (
-    "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS",
-    "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS")}
+PINNED_THREADS = threads.PINNED
 
 CHUNK = 32   # recipients per issue task
 MARK = "fingerprint"
