@@ -406,18 +406,23 @@ class FeatureIndex:
     features : (N, 33) float32, unit rows, every asset's keypoint descriptors
     owner : (N,) int32, index into ``keys`` of each row
     hashes : list of str, :func:`geometry_hash` of each asset
+    prior : (n_assets,) float
+        Share of votes each asset draws from unrelated background (procedural
+        clutter, junk points): "hub" assets whose descriptors resemble
+        anything are discounted by it.
     """
 
     keys: list
     features: np.ndarray
     owner: np.ndarray
     hashes: list
+    prior: np.ndarray = None
 
     def save(self, path):
         """Write the index as a ``.npz`` file."""
         buf = io.BytesIO()
         np.savez(buf, keys=np.array(self.keys, dtype=str), features=self.features, owner=self.owner,
-                 hashes=np.array(self.hashes, dtype=str))
+                 hashes=np.array(self.hashes, dtype=str), prior=self.prior)
         with open(path, "wb") as f:
             f.write(buf.getvalue())
 
@@ -425,7 +430,7 @@ class FeatureIndex:
     def load(cls, path):
         data = np.load(path)
         return cls([str(k) for k in data["keys"]], data["features"], data["owner"],
-                   [str(h) for h in data["hashes"]])
+                   [str(h) for h in data["hashes"]], data["prior"])
 
     def exact(self, points):
         """Asset keys whose geometry hash equals the suspect's (re-saves, re-orderings)."""
@@ -481,11 +486,12 @@ class FeatureIndex:
         list of (asset_key, votes) ; votes is a share of the suspect's descriptors (inf for an exact hash)
         """
         exact = set(self.exact(points))
-        score = np.zeros(len(self.keys))
+        score = np.full(len(self.keys), -np.inf)
+        prior = self.prior if self.prior is not None else np.zeros(len(self.keys))
         for factor in QUERY_SCALES:
             _, feats = describe(points, factor=factor)
             if len(feats):
-                score = np.maximum(score, self.votes(feats) / len(feats))
+                score = np.maximum(score, self.votes(feats) / len(feats) - prior)
         ranked = sorted(range(len(self.keys)), key=lambda i: (self.keys[i] not in exact, -score[i]))
         return [(self.keys[i], float("inf") if self.keys[i] in exact else float(score[i]))
                 for i in ranked[:top_k]]
@@ -509,4 +515,33 @@ def build_index(clouds):
         feats.append(f)
         owner.append(np.full(len(f), i, dtype=np.int32))
         hashes.append(geometry_hash(points))
-    return FeatureIndex(keys, np.concatenate(feats).astype(np.float32), np.concatenate(owner), hashes)
+    index = FeatureIndex(keys, np.concatenate(feats).astype(np.float32), np.concatenate(owner), hashes)
+    index.prior = background_votes(index)
+    return index
+
+
+def background_votes(index, n_points=20000, rng=0):
+    """Share of votes each asset draws from unrelated, seeded background geometry.
+
+    The background is the procedural clutter of :func:`attacks.clutter`
+    (blobs, boxes, cylinders) and uniform junk in a box, described at every
+    query scale.
+
+    Returns
+    -------
+    (n_assets,) float
+    """
+    from .kernels import attacks
+
+    gen = np.random.default_rng(rng)
+    scenes = [attacks.clutter(gen.normal(size=(10, 3)), n_points / 10.0, gen),
+              gen.uniform(-1.0, 1.0, (n_points // 4, 3))]
+    share = np.zeros(len(index.keys))
+    count = 0
+    for points in scenes:
+        for factor in QUERY_SCALES:
+            _, feats = describe(points, factor=factor)
+            if len(feats):
+                share += index.votes(feats) / len(feats)
+                count += 1
+    return share / max(count, 1)

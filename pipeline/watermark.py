@@ -515,6 +515,8 @@ def estimate_differences(suspect, reference, specs, bases, detect_params, displa
             "scale": float(transform.scale),
             "fitness": float(transform.fitness),
             "residual_rel_diag": float(transform.residual) / _diag(reference),
+            "rotation": np.asarray(transform.rotation, dtype=np.float64).tolist(),
+            "translation": np.asarray(transform.translation, dtype=np.float64).tolist(),
         },
     }
 

@@ -78,7 +78,9 @@ def read_ply(data):
     if not data.startswith(b"ply"):
         raise PlyError("not a PLY file (no 'ply' magic or no 'end_header')")
     body_start = _end_of_header(data)
-    header = data[:body_start].decode("ascii", errors="replace").splitlines()
+    # latin-1 maps every byte to one character: the header is written back byte for byte
+    header = [line.removesuffix("\r") for line in data[:body_start].decode("latin-1").split("\n")]
+    header = header[:-1] if header and header[-1] == "" else header
     fmt, elements = _parse_header(header)
     if not elements or elements[0][0] != "vertex":
         raise PlyError("the first element must be 'vertex'")
@@ -134,7 +136,7 @@ def write_ply(ply, points):
     vertices = ply.vertices.copy()
     for i, a in enumerate("xyz"):
         vertices[a] = points[:, i].astype(vertices.dtype[a])
-    head = ("\n".join(ply.header) + "\n").encode("ascii")
+    head = ("\n".join(ply.header) + "\n").encode("latin-1")
     if ply.fmt == "ascii":
         body = _write_ascii_vertices(vertices)
     else:

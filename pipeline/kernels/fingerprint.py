@@ -30,7 +30,7 @@ import hashlib
 
 import numpy as np
 
-__all__ = ["chip_bank", "signs", "quantize", "scores", "threshold", "corrected_p", "accuse", "presence",
+__all__ = ["chip_bank", "signs", "quantize", "scores", "cluster_scores", "threshold", "corrected_p", "accuse", "presence",
            "observation"]
 
 _DOMAIN = b"pointmark/fingerprint/v1"
@@ -122,6 +122,25 @@ def scores(y, bank, chunk=512, bits=8):
         words = np.ascontiguousarray(np.pad(bank[a:a + chunk], ((0, 0), (0, pad)))).view(np.uint64)
         ones[a:a + chunk] = np.bitwise_count(words[:, None, :] & masks[None]).sum(axis=2, dtype=np.int64) @ weights
     return (2.0 * ones - float(padded.sum())) / norm
+
+
+def cluster_scores(y, chips, n_clusters):
+    """Score of one recipient's chips cluster by cluster (for evidence: where the mark was found).
+
+    Parameters
+    ----------
+    y : (length,) float
+    chips : (length,) float in {-1, +1}
+    n_clusters : int
+
+    Returns
+    -------
+    (n_clusters,) float; 0 for a cluster the suspect does not cover
+    """
+    parts_y = np.split(np.asarray(y, dtype=np.float64), n_clusters)
+    parts_x = np.split(np.asarray(chips, dtype=np.float64), n_clusters)
+    return np.array([float(a @ b) / float(np.linalg.norm(a)) if np.any(a) else 0.0
+                     for a, b in zip(parts_y, parts_x)])
 
 
 def threshold(n_checked, epsilon):

@@ -116,7 +116,9 @@ def _score_group(y, ref, params, rows, material, registration):
         "asset_key": rows[0]["asset_key"], "key_id": rows[0]["key_id"], "reference_key": rows[0]["reference_key"],
         "generation": int(rows[0]["generation"]),
         "n_recipients": len(recipients), "presence_p": fingerprint.presence(s),
-        "best": [{"recipient": recipients[i], "score": float(s[i]), "copies": sorted(generations[recipients[i]])}
+        "best": [{"recipient": recipients[i], "score": float(s[i]), "copies": sorted(generations[recipients[i]]),
+                  "cluster_scores": (fingerprint.cluster_scores(y, fingerprint.signs(bank[i], len(y))[0], len(ref.specs))
+                                     .tolist() if s[i] >= FLOOR else None)}
                  for i in keep],
         "registration": registration,
     }
@@ -147,7 +149,8 @@ def decide(checks, epsilon):
     result = {"n_checked": n_checked, "threshold": t, "best_innocent_score": innocent,
               "accused": [{"recipient": b["recipient"], "asset_key": g["asset_key"], "key_id": g["key_id"],
                            "score": s, "p_value": fingerprint.corrected_p(s, n_checked), "margin": s - innocent,
-                           "copies": b["copies"], "registration": g["registration"]}
+                           "copies": b["copies"], "registration": g["registration"],
+                           "cluster_scores": b["cluster_scores"], "reference_key": g["reference_key"]}
                           for s, g, b in accused]}
     # a mark is there but nobody clears the threshold: say so, never "no match"
     if accused:

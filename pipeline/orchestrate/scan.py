@@ -31,6 +31,7 @@ import pyarrow as pa
 
 from .. import __version__, config as config_mod
 from ..io.catalog import discover_assets, read_catalogue
+from ..io.evidence import render_match, write_summary
 from ..io.ledger import Ledger
 from ..io.manifest import read_rows, write_rows
 from ..io.pointcloud import read_points, sha256_file
@@ -38,7 +39,7 @@ from ..kernels.descriptor import d2_descriptor, descriptor_distance
 from .attribute import check_asset, decide
 from .detect import held_rows
 
-__all__ = ["SCAN_SCHEMA", "run_scan", "read_scan"]
+__all__ = ["SCAN_SCHEMA", "run_scan", "read_scan", "render_evidence"]
 
 SCAN_SCHEMA = pa.schema([
     ("schema_version", pa.int16()),
@@ -60,6 +61,7 @@ SCAN_SCHEMA = pa.schema([
     ("registration_fitness", pa.float64()),
     ("registration_residual_rel_diag", pa.float64()),
     ("registration_scale", pa.float64()),
+    ("evidence_path", pa.string()),
     ("ledger_version", pa.string()),
     ("catalogue_version", pa.string()),
     ("seconds_candidates", pa.float64()),
@@ -153,7 +155,7 @@ def run_scan(cfg, secret, *, force=False):
                     pending.add(sub)
                 open_checks[info["path"]] = len(subs)
                 if not subs:
-                    counts[_finish(out, versions, info, detect_params.epsilon)] += 1
+                    counts[_finish(out, versions, info, detect_params.epsilon, issued, store)] += 1
             else:
                 info = waiting.pop(fut)
                 if fut.status == "finished":
@@ -162,16 +164,17 @@ def run_scan(cfg, secret, *, force=False):
                     info["errors"].append(_text(fut.exception()))
                 open_checks[info["path"]] -= 1
                 if open_checks[info["path"]] == 0:
-                    verdict = _finish(out, versions, info, detect_params.epsilon)
+                    verdict = _finish(out, versions, info, detect_params.epsilon, issued, store)
                     counts[verdict] += 1
                     print(f"[pointmark] scan: {info['path']}: {verdict}", file=sys.stderr, flush=True)
     finally:
         client.close()
         if cluster is not None:
             cluster.close()
+    summary = write_summary(read_scan(out), out / "report.md", detect_params.epsilon)
     print(f"scanned {len(suspects)} suspects in {time.perf_counter() - t0:.0f}s: {counts['match']} match, "
           f"{counts['inconclusive']} inconclusive, {counts['no match']} no match, {counts['failed']} failed, "
-          f"{counts['skipped']} already scanned; results in {out}")
+          f"{counts['skipped']} already scanned; results in {out}, evidence report {summary}")
     if counts["failed"]:
         return 3
     return 1 if counts["match"] else 0
@@ -196,12 +199,28 @@ def _quick(info, by_sha, originals, out, versions):
     return "match"
 
 
-def _finish(out, versions, info, epsilon):
+def render_evidence(suspect_path, original_path, accused, store, path):
+    """The evidence picture of one accusation (see :func:`pipeline.io.evidence.render_match`)."""
+    from ..io.basis_store import BasisStore
+
+    centre, _, _, members = BasisStore(store).load_meta(accused["reference_key"])
+    title = (f"{Path(suspect_path).name}: issued copy of {accused['asset_key']} to {accused['recipient']} "
+             f"(generation {accused['copies'][-1][0]}), score {accused['score']:.1f}, p = {accused['p_value']:.2g}, "
+             f"margin {accused['margin']:.1f}")
+    return render_match(read_points(original_path).points, read_points(suspect_path).points,
+                        {**accused["registration"], "centre": centre}, members, accused["cluster_scores"], title, path)
+
+
+def _finish(out, versions, info, epsilon, issued, store):
     if info["errors"]:     # a check that raised is never "no match": retried next scan
         _record(out, versions, info, "failed", error="; ".join(info["errors"]))
         return "failed"
     result = decide(info["checks"], epsilon)
     top = result["accused"][0] if result["accused"] else None
+    evidence = None
+    if top is not None and top.get("cluster_scores") is not None:
+        evidence = out / f"{info['sha256'][:32]}-{versions[0]}-{versions[1]}.png"
+        render_evidence(info["path"], issued[top["asset_key"]][-1]["source_path"], top, store, evidence)
     reg = top["registration"] if top else next((g["registration"] for c in info["checks"] for g in c["groups"]), {})
     seconds = [c["seconds"] for c in info["checks"]]
     _record(out, versions, info, result["verdict"],
@@ -214,7 +233,8 @@ def _finish(out, versions, info, epsilon):
             registration_fitness=reg.get("fitness"), registration_residual_rel_diag=reg.get("residual_rel_diag"),
             registration_scale=reg.get("scale"),
             seconds_registration=sum(s["registration"] for s in seconds),
-            seconds_detection=sum(s["estimate"] + s["scoring"] for s in seconds))
+            seconds_detection=sum(s["estimate"] + s["scoring"] for s in seconds),
+            evidence_path=None if evidence is None else str(evidence))
     return result["verdict"]
 
 
