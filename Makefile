@@ -6,7 +6,7 @@ STAMP   := $(VENV)/.installed
 SUDO    := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 DEBS    := libusb-1.0-0 libgomp1
 
-.PHONY: setup demo test bench schema clean
+.PHONY: setup demo test bench schema clean fuzz
 
 $(STAMP): pyproject.toml
 	@missing=""; for p in $(DEBS); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
@@ -29,6 +29,12 @@ test: setup
 
 bench: setup
 	$(PY) bench/run.py
+
+# Each reader fuzz target (tests/fuzz) for FUZZ_SECONDS (default 10 minutes), one after another;
+# prints the executions per target.  Needs the real scans of ../shared/data (or POINTMARK_TEST_DATA).
+FUZZ_SECONDS ?= 600
+fuzz: setup
+	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 $(PY) -m tests.fuzz.run --seconds $(FUZZ_SECONDS)
 
 schema: setup
 	$(VENV)/bin/pointmark schema > configs/schema.json

@@ -227,7 +227,10 @@ def _good(result, good, spacing):
             and result.residual < 2.0 * spacing)
 
 
-def register_global(suspect, original, *, spacing, target=4000, scales=(1.0, 2**0.5, 2**-0.5, 2.0, 0.5),
+SCALES = (1.0, 2**0.5, 2**-0.5, 2.0, 0.5, 2**1.5, 2**-1.5)
+
+
+def register_global(suspect, original, *, spacing, target=4000, scales=SCALES,
                     iterations=20000, good=0.2, rng=0, icp_points=6000, candidates_per_pool=8):
     """Part-to-whole similarity registration from FPFH correspondences.
 

@@ -139,10 +139,16 @@ class Ledger:
             raise LedgerError(f"{self.copies}: unreadable ledger part: {exc}") from None
 
     def rows(self, status="ok", asset_key=None):
-        """Rows as dicts, optionally only one status and one asset."""
-        rows = self.table().to_pylist()
-        return [r for r in rows if (status is None or r["status"] == status)
-                and (asset_key is None or r["asset_key"] == asset_key)]
+        """Rows as dicts (each with ``ledger_part``, its file's name), optionally one status and asset."""
+        out = []
+        for part in self.parts():
+            try:
+                rows = pq.read_table(part, schema=LEDGER_SCHEMA).to_pylist()
+            except (OSError, pa.ArrowInvalid) as exc:
+                raise LedgerError(f"{part}: unreadable ledger part: {exc}") from None
+            out += [{**r, "ledger_part": part.name} for r in rows
+                    if (status is None or r["status"] == status) and (asset_key is None or r["asset_key"] == asset_key)]
+        return out
 
     def append(self, rows):
         """Write rows as a new part file (never an existing name); returns its path."""

@@ -148,12 +148,13 @@ def outliers(points, fraction, rng=None):
 def scene(points, others, factor, rng=None, *, gap=0.15):
     """Place the points among unrelated objects: clutter of ``factor`` times their count.
 
-    Each of ``others`` is centred, randomly rotated, scaled so its largest
-    bbox side is 0.6 to 1.4 times the asset's, and put next to the asset on a
-    random direction at a distance leaving about ``gap`` x phi between
-    bounding spheres (so objects surround but do not intersect it).  The
-    clutter points are split evenly over the objects, each subsampled (or
-    resampled with repeats jittered by 1e-4 phi) to its share.
+    Objects are taken from ``others`` in turn (again, with a new pose, until
+    the clutter holds ``round(factor * n)`` points): each is centred,
+    randomly rotated, scaled so its largest bbox side is 0.6 to 1.4 times
+    the asset's, subsampled to at most its remaining share, and put next to
+    the asset on a random direction at a distance leaving about ``gap`` x
+    phi between bounding spheres (the objects surround the asset but do not
+    intersect it).
 
     Parameters
     ----------
@@ -166,33 +167,33 @@ def scene(points, others, factor, rng=None, *, gap=0.15):
 
     Returns
     -------
-    (n + about factor * n, 3) float
+    (n + round(factor * n), 3) float
         The asset's points first, then the clutter.
     """
     rng = np.random.default_rng(rng)
     phi = _phi(points)
     centre = (points.min(axis=0) + points.max(axis=0)) / 2.0
     radius = float(np.linalg.norm(points - centre, axis=1).max())
-    share = int(round(factor * len(points) / max(len(others), 1)))
-    placed = []
-    directions = []
-    for other in others:
-        other = np.asarray(other, dtype=np.float64)
+    remaining = int(round(factor * len(points)))
+    placed, directions = [], []
+    ring = 0
+    while remaining > 0 and others:
+        other = np.asarray(others[len(placed) % len(others)], dtype=np.float64)
+        share = min(remaining, len(other), max(remaining // max(len(others) - len(placed), 1), 1))
         o_centre = (other.min(axis=0) + other.max(axis=0)) / 2.0
         obj = (other - o_centre) * (rng.uniform(0.6, 1.4) * phi / _phi(other))
-        obj = obj @ random_rotation(rng).T
-        idx = rng.choice(len(obj), share, replace=share > len(obj))
-        obj = obj[idx]
-        if share > len(other):
-            obj = obj + rng.normal(0.0, 1e-4 * phi, obj.shape)
+        obj = obj[rng.choice(len(obj), share, replace=False)] @ random_rotation(rng).T
         r_obj = float(np.linalg.norm(obj, axis=1).max())
-        for _ in range(100):   # a direction away from the objects placed so far
+        for _ in range(100):   # a direction away from the objects placed so far on this ring
             d = rng.normal(size=3)
             d /= np.linalg.norm(d)
             if all(d @ e < 0.5 for e in directions):
                 break
+        else:
+            directions, ring = [], ring + 1      # ring full: start a wider one
         directions.append(d)
-        placed.append(obj + centre + d * (radius + r_obj + gap * phi))
+        placed.append(obj + centre + d * (radius + r_obj + gap * phi) * (1 + 1.5 * ring))
+        remaining -= share
     return np.concatenate([points, *placed]) if placed else points.copy()
 
 

@@ -124,7 +124,7 @@ def _score_group(y, ref, params, rows, material, registration):
     }
 
 
-def decide(checks, epsilon):
+def decide(checks, epsilon, prior_checked=0):
     """Verdict of one suspect from all its checks, corrected for everything scored.
 
     Parameters
@@ -132,6 +132,9 @@ def decide(checks, epsilon):
     checks : list of dict (from :func:`check_asset`)
     epsilon : float
         Probability of accusing any innocent, per suspect.
+    prior_checked : int
+        Recipients this suspect was scored against by earlier scans; they
+        count in the correction, so rescans never add chances to accuse.
 
     Returns
     -------
@@ -141,7 +144,7 @@ def decide(checks, epsilon):
         threshold, best_innocent_score.
     """
     groups = [g for c in checks for g in c["groups"]]
-    n_checked = sum(g["n_recipients"] for g in groups)
+    n_checked = sum(g["n_recipients"] for g in groups) + int(prior_checked)
     t = fingerprint.threshold(max(n_checked, 1), epsilon)
     scored = [(b["score"], g, b) for g in groups for b in g["best"]]
     accused = sorted((x for x in scored if x[0] >= t), key=lambda x: -x[0])

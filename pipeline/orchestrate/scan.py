@@ -10,7 +10,10 @@ corrected for everything scored.
 Each suspect ends as exactly one of match, inconclusive, no match or failed.
 A failed suspect is counted, sets exit status 3 and is retried by the next
 scan; a suspect is skipped only when it was scanned against the same ledger
-and catalogue versions.
+and catalogue versions.  Otherwise an earlier suspect is checked only against
+the ledger parts and catalogue assets added since (``scan.out/state`` records
+what each version held), and the correction counts the recipients of every
+scan of it.
 
 Exit status: 0 no match, 1 at least one match, 2 bad config or secret,
 3 some suspects failed.
@@ -34,7 +37,7 @@ from ..io.catalog import discover_assets, read_catalogue
 from ..io.evidence import render_match, write_summary
 from ..io.ledger import Ledger
 from ..io.manifest import read_rows, write_rows
-from ..io.pointcloud import read_points, sha256_file
+from ..io.pointcloud import atomic_write_bytes, read_points, sha256_file
 from ..kernels.descriptor import d2_descriptor, descriptor_distance
 from .attribute import check_asset, decide
 from .detect import held_rows
@@ -69,21 +72,22 @@ SCAN_SCHEMA = pa.schema([
     ("seconds_detection", pa.float64()),
     ("status", pa.string()),
     ("error", pa.string()),
+    ("note", pa.string()),
     ("tool_version", pa.string()),
     ("scanned_at", pa.timestamp("ms", tz="UTC")),
 ])
 
 
-def triage(suspect_path, descriptors, top_k):
-    """Read a suspect, hash it, rank candidate assets by shape descriptor."""
+def triage(suspect_path, descriptors):
+    """Read a suspect, hash it, rank every catalogue asset by shape descriptor."""
     t0 = time.perf_counter()
     points = read_points(suspect_path).points
     names = list(descriptors)
     dist = np.atleast_1d(descriptor_distance(d2_descriptor(points - points.mean(axis=0)),
                                              np.array([descriptors[k] for k in names])))
-    order = np.argsort(dist, kind="stable")[:top_k]
+    order = np.argsort(dist, kind="stable")
     return {"path": str(suspect_path), "sha256": sha256_file(suspect_path), "n_points": len(points),
-            "candidates": [names[i] for i in order], "seconds": time.perf_counter() - t0}
+            "ranking": [names[i] for i in order], "seconds": time.perf_counter() - t0}
 
 
 def _reference(cfg, secret):
@@ -102,7 +106,8 @@ def _reference(cfg, secret):
     # an issued copy with its original's bytes is no copy: it never attributes anything
     by_sha = {r["output_sha256"]: r for r in rows if r["output_sha256"] not in originals}
     descriptors = {r["asset_key"]: r["descriptor"] for r in catalogue if r["asset_key"] in issued}
-    return ledger, materials, issued, by_sha, originals, descriptors, cat_version
+    assets = {r["asset_key"]: r["sha256"] for r in catalogue}
+    return ledger, materials, issued, by_sha, originals, descriptors, cat_version, assets
 
 
 def _result_path(out, sha, versions, failed=False):
@@ -118,18 +123,20 @@ def run_scan(cfg, secret, *, force=False):
     from .run import start_client
 
     sc = cfg["scan"]
-    ledger, materials, issued, by_sha, originals, descriptors, cat_version = _reference(cfg, secret)
+    ledger, materials, issued, by_sha, originals, descriptors, cat_version, assets = _reference(cfg, secret)
     versions = (ledger.version(), cat_version)
     suspects = [a.path for a in discover_assets(sc["suspects"])]
     detect_params = config_mod.detect_params(cfg)
     store = str(Path(cfg["output"]["bases"] or ledger.folder / "bases"))
     out = Path(sc["out"])
     out.mkdir(parents=True, exist_ok=True)
+    state = _save_state(out, versions, [p.name for p in ledger.parts()], assets)
+    previous = {} if force else _previous(out)
     t0 = time.perf_counter()
     counts = {"match": 0, "no match": 0, "inconclusive": 0, "failed": 0, "skipped": 0}
     client, cluster = start_client(cfg)
     try:
-        triages = {client.submit(triage, str(p), descriptors, sc["top_k"], pure=False): p for p in suspects}
+        triages = {client.submit(triage, str(p), descriptors, pure=False): p for p in suspects}
         pending = as_completed(list(triages))
         waiting, open_checks = {}, {}
         for fut in pending:
@@ -140,15 +147,19 @@ def run_scan(cfg, secret, *, force=False):
                     counts["failed"] += 1
                     continue
                 info = fut.result()
-                if not force and _result_path(out, info["sha256"], versions).exists():
+                prev = previous.get(info["sha256"])
+                if prev is not None and (prev["ledger_version"], prev["catalogue_version"]) == versions:
                     counts["skipped"] += 1
                     continue
                 verdict = _quick(info, by_sha, originals, out, versions)
                 if verdict:
                     counts[verdict] += 1
                     continue
+                view = _scope(issued, prev, state, out)
+                info["prev"] = prev
+                info["candidates"] = [a for a in info["ranking"] if a in view][:sc["top_k"]]
                 info["checks"], info["errors"] = [], []
-                subs = [client.submit(check_asset, info["path"], issued[a][-1]["source_path"], issued[a], materials,
+                subs = [client.submit(check_asset, info["path"], view[a][-1]["source_path"], view[a], materials,
                                       store, detect_params, pure=False) for a in info["candidates"]]
                 for sub in subs:
                     waiting[sub] = info
@@ -215,7 +226,18 @@ def _finish(out, versions, info, epsilon, issued, store):
     if info["errors"]:     # a check that raised is never "no match": retried next scan
         _record(out, versions, info, "failed", error="; ".join(info["errors"]))
         return "failed"
-    result = decide(info["checks"], epsilon)
+    prev = info.get("prev")
+    result = decide(info["checks"], epsilon, prior_checked=(prev or {}).get("n_checked") or 0)
+    if prev is not None and result["verdict"] != "match" and prev["verdict"] in ("match", "inconclusive"):
+        # what was found before stands; the new copies and assets did not change it
+        carried = {k: prev[k] for k in SCAN_SCHEMA.names if k in prev and k not in ("scanned_at", "ledger_version",
+                                                                                     "catalogue_version")}
+        _record(out, versions, info, prev["verdict"], **{k: v for k, v in carried.items() if k not in
+                                                        ("suspect_path", "suspect_sha256", "n_points", "verdict",
+                                                         "status", "tool_version", "schema_version", "note")},
+                note=f"checked {result['n_checked'] - (prev.get('n_checked') or 0)} more recipients; "
+                     f"the verdict of {prev['scanned_at']:%Y-%m-%d %H:%M} stands")
+        return prev["verdict"]
     top = result["accused"][0] if result["accused"] else None
     evidence = None
     if top is not None and top.get("cluster_scores") is not None:
@@ -236,6 +258,47 @@ def _finish(out, versions, info, epsilon, issued, store):
             seconds_detection=sum(s["estimate"] + s["scoring"] for s in seconds),
             evidence_path=None if evidence is None else str(evidence))
     return result["verdict"]
+
+
+def _save_state(out, versions, parts, assets):
+    """Record which ledger parts and catalogue assets a version names (once, never rewritten)."""
+    folder = Path(out) / "state"
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, value in ((f"ledger-{versions[0]}.json", parts), (f"catalogue-{versions[1]}.json", assets)):
+        path = folder / name
+        if not path.exists():
+            atomic_write_bytes(path, json.dumps(value, sort_keys=True).encode())
+    return {"parts": set(parts), "assets": assets}
+
+
+def _previous(out):
+    """The latest finished (not failed) result of every suspect sha256 scanned into ``out``."""
+    latest = {}
+    for r in read_scan(out):
+        if r["status"] == "ok" and r.get("suspect_sha256"):
+            old = latest.get(r["suspect_sha256"])
+            if old is None or r["scanned_at"] > old["scanned_at"]:
+                latest[r["suspect_sha256"]] = r
+    return latest
+
+
+def _scope(issued, prev, state, out):
+    """Issued rows a suspect must be checked against: all, or those added since its last scan."""
+    if prev is None:
+        return issued
+    folder = Path(out) / "state"
+    try:
+        parts = set(json.loads((folder / f"ledger-{prev['ledger_version']}.json").read_text()))
+        assets = json.loads((folder / f"catalogue-{prev['catalogue_version']}.json").read_text())
+    except (OSError, ValueError):
+        return issued                       # no record of what it saw: check everything again
+    view = {}
+    for asset, rows in issued.items():
+        new_asset = assets.get(asset) != state["assets"].get(asset)
+        keep = [r for r in rows if new_asset or r["ledger_part"] not in parts]
+        if keep:
+            view[asset] = keep
+    return view
 
 
 def _record(out, versions, info, verdict, **columns):

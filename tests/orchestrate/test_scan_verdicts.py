@@ -1,0 +1,103 @@
+"""Scan verdicts: failed is never "no match", rescans check only what is new, bad secrets stop the scan."""
+
+import os
+import subprocess
+import sys
+
+import pytest
+import yaml
+
+from pipeline.io.catalog import catalogue_record, discover_assets, write_catalogue
+from pipeline.io.pointcloud import read_points, write_array
+from pipeline.kernels import attacks
+from pipeline.orchestrate.scan import read_scan
+from tests.conftest import ROOT
+from tests.orchestrate.test_run import SECRET, _run, make_catalogue, write_config
+
+pytestmark = pytest.mark.slow
+
+
+def _scan(tmp, secret=SECRET):
+    env = dict(os.environ, PYTHONPATH=str(ROOT), POINTMARK_SECRET=secret)
+    return subprocess.run([sys.executable, "-m", "pipeline.cli", "scan", str(tmp / "scan.yaml")], cwd=tmp, env=env,
+                          capture_output=True, text=True, timeout=900)
+
+
+def _latest(tmp):
+    latest = {}
+    for r in sorted(read_scan(tmp / "scan"), key=lambda r: r["scanned_at"]):
+        latest[os.path.basename(r["suspect_path"])] = r
+    return latest
+
+
+@pytest.fixture()
+def world(tmp_path):
+    src = make_catalogue(tmp_path / "assets", n_assets=2)
+    cfg_path = write_config(tmp_path, src, extra={"dask": {"n_workers": 1}})
+    _run(cfg_path, serial=True)
+    write_catalogue([catalogue_record(a) for a in discover_assets(src)], tmp_path / "catalog.parquet")
+    points = read_points(tmp_path / "out" / "marked" / "bob" / "asset-0.ply").points
+    write_array(tmp_path / "suspects", "found", attacks.apply_chain(points, [("random_similarity", None),
+                                                                             ("shuffle", None)], 2), "ply")
+    cfg = yaml.safe_load(cfg_path.read_text())
+    cfg["scan"] = {"suspects": str(tmp_path / "suspects"), "catalogue": str(tmp_path / "catalog.parquet"),
+                   "out": str(tmp_path / "scan"), "top_k": 2}
+    (tmp_path / "scan.yaml").write_text(yaml.safe_dump(cfg))
+    return tmp_path, cfg_path
+
+
+def test_a_check_that_raises_is_failed_exit_3_and_retried_with_one_result_file(world):
+    tmp, _ = world
+    original = tmp / "assets" / "asset-0.ply"
+    hidden = tmp / "asset-0.ply.away"
+    original.rename(hidden)                                  # the check cannot read the original
+    for _ in range(2):
+        res = _scan(tmp)
+        assert res.returncode == 3, res.stdout + res.stderr
+        assert "1 failed" in res.stdout and "no match" not in _latest(tmp)["found.ply"]["verdict"]
+        assert _latest(tmp)["found.ply"]["verdict"] == "failed"
+    assert len(list((tmp / "scan").glob("*.failed.parquet"))) == 1
+    hidden.rename(original)
+    res = _scan(tmp)
+    assert res.returncode == 1, res.stdout + res.stderr      # retried, and found
+    assert _latest(tmp)["found.ply"]["verdict"] == "match" and _latest(tmp)["found.ply"]["recipient"] == "bob"
+
+
+def test_a_rescan_checks_old_suspects_only_against_new_copies(world):
+    tmp, cfg_path = world
+    write_array(tmp / "suspects", "unrelated", read_points(tmp / "assets" / "asset-1.pcd").points[::-1] * 1.5, "ply")
+    assert _scan(tmp).returncode == 1
+    first = _latest(tmp)
+    assert first["found.ply"]["n_checked"] == 4 and first["unrelated.ply"]["verdict"] == "no match"
+    res = _scan(tmp)                                          # nothing new: both skipped
+    assert "2 already scanned" in res.stdout, res.stdout
+    _run(cfg_path, serial=True, sets=["recipients=[alice, bob, carol]"])     # one new copy per asset
+    assert _scan(tmp).returncode == 1
+    second = _latest(tmp)
+    # each suspect checked only against carol's new copies (2 candidate assets), counted on top of before
+    assert second["unrelated.ply"]["n_checked"] == first["unrelated.ply"]["n_checked"] + 2
+    assert second["unrelated.ply"]["verdict"] == "no match"
+    assert second["found.ply"]["verdict"] == "match" and second["found.ply"]["recipient"] == "bob"
+    assert second["found.ply"]["ledger_version"] != first["found.ply"]["ledger_version"]
+
+
+def test_a_secret_that_opens_no_issued_key_refuses_the_scan_and_marks_nothing(world):
+    tmp, _ = world
+    cfg = yaml.safe_load((tmp / "scan.yaml").read_text())
+    (tmp / "rotated.key").write_text("a-rotated-secret-that-issued-nothing\n")
+    cfg["key"]["secret_file"] = str(tmp / "rotated.key")
+    (tmp / "scan.yaml").write_text(yaml.safe_dump(cfg))
+    res = _scan(tmp)
+    assert res.returncode == 2 and "matches none of the key fingerprints" in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1
+    assert not (tmp / "scan").exists() or not read_scan(tmp / "scan")
+
+
+def test_leftover_temporary_files_are_ignored(world):
+    tmp, _ = world
+    (tmp / "scan").mkdir()
+    (tmp / "scan" / ".found.x1y2.tmp.parquet").write_bytes(b"PAR1 half a file")
+    (tmp / "out" / "manifests" / "copies" / ".part-x.parquet.tmp").write_bytes(b"junk")
+    res = _scan(tmp)
+    assert res.returncode == 1, res.stdout + res.stderr
+    assert _latest(tmp)["found.ply"]["verdict"] == "match"
