@@ -92,11 +92,15 @@ def _from_catalogue_file(path, default_recipients):
     for i, row in enumerate(rows):
         if not row.get("asset_key") or not row.get("path"):
             raise InputError(f"{path}: row {i} lacks asset_key or path")
+        key = str(row["asset_key"])
+        if Path(key).is_absolute() or ".." in Path(key).parts or "\\" in key or not key.strip():
+            raise InputError(f"{path}: row {i}: asset key {key!r} would leave the output folder (absolute, "
+                             f"'..' or a backslash)")
         # a row the catalogue build could not read stays in: the run fails it as a row
         file = Path(row["path"])
         file = file if file.is_absolute() else path.parent / file
         recipients = tuple(row.get("recipients") or ()) or default_recipients
-        assets.append(Asset(str(row["asset_key"]), file, recipients))
+        assets.append(Asset(key, file, recipients))
     return assets
 
 

@@ -157,14 +157,14 @@ def _plan_asset(job, asset, recipients, rows, out_dir, force):
     suffix = asset.path.suffix.lower()
     name = asset.key if item.generation == 1 else f"{asset.key}.g{item.generation}"
     redo = set(item.missing) if force else set()
-    item.items = [(r, out_dir / r / f"{name}{suffix}") for r in recipients if r not in done or r in redo]
+    item.items = [(r, out_dir.resolve() / r / f"{name}{suffix}") for r in recipients if r not in done or r in redo]
     return item
 
 
 def _row_base(job, item):
     params = params_record(job.params)
     return {"run_id": job.run_id, "generation": item.generation, "generation_id": item.generation_id,
-            "asset_key": item.key, "source_path": str(item.path), "source_sha256": item.source_sha256,
+            "asset_key": item.key, "source_path": str(Path(item.path).resolve()), "source_sha256": item.source_sha256,
             "mark": MARK, "key_id": job.key_id, "key_fingerprint": job.key_fingerprint, "key_salt": job.key_salt,
             "params_json": json.dumps(params, sort_keys=True),
             **{k: params[k] for k in ("n_bits", "chip_rate", "beta", "valence", "n_clusters", "cluster_size",

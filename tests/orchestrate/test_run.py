@@ -319,3 +319,17 @@ def test_an_interrupted_run_resumes_and_issues_each_copy_once(tmp_path):
     assert len(keys) == len(set(keys)) == 12
     assert all(r["status"] == "ok" for r in rows)
     assert not [p for p in (tmp_path / "out" / "marked").rglob("*") if p.name.startswith(".")]
+
+
+@pytest.mark.parametrize("key", ["../../escape", "/etc/evil", "a/../../b"])
+def test_an_asset_key_that_escapes_the_output_folder_is_refused(tmp_path, key):
+    import csv
+
+    src = make_catalogue(tmp_path / "assets", n_assets=1)
+    with open(tmp_path / "catalog.csv", "w", newline="") as f:
+        csv.writer(f).writerows([["asset_key", "path"], [key, str(src / "asset-0.ply")]])
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    res = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", str(write_config(tmp_path, tmp_path / "catalog.csv")),
+                          "--serial"], cwd=tmp_path, env=env, capture_output=True, text=True)
+    assert res.returncode == 2 and "would leave the output folder" in res.stderr
+    assert not (tmp_path / "out" / "marked").exists() and not (tmp_path / "escape").exists()
