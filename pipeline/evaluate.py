@@ -8,6 +8,7 @@ bases of a model are computed once per cluster parameters, cached as a
 
 from __future__ import annotations
 
+import functools
 import json
 import sys
 import time
@@ -67,7 +68,7 @@ def prepare_bases(model_path, params, store):
     from .orchestrate.reference import load_reference
 
     key = BasisStore(store).key(sha256_file(model_path), params)
-    load_reference(read_points(model_path).points, params, store, key)
+    load_reference(read_points(model_path).points, params, store, key, detection=True)
     return str(store), key
 
 
@@ -93,7 +94,8 @@ def trial(model_path, cache_path, params, detect_params, chain_text, method, see
     t0 = time.perf_counter()
     cloud = read_points(model_path)
     points = cloud.points
-    centre, phi, specs, bases = load_bases(cache_path, params.n_coefficients)
+    ref = _stored_reference(tuple(cache_path), params.n_coefficients)
+    centre, phi, specs, bases = ref.centre, ref.phi, ref.specs, ref.bases
     bits = _message_bits(params)
     params, dparams = method_params(method, params, detect_params)
     marked = embed_with_bases(points - centre, specs, bases, material, bits, params, phi) + centre
@@ -102,7 +104,7 @@ def trial(model_path, cache_path, params, detect_params, chain_text, method, see
     attacked = apply_chain(marked, chain + [("shuffle", None)], rng=seed, faces=cloud.faces())
     t2 = time.perf_counter()
     estimate = estimate_differences(attacked - centre, points - centre, specs, bases, dparams,
-                                    params.displacement)
+                                    params.displacement, **ref.detection_aids())
     result = decode(estimate, specs, material, params, dparams)
     errors = int((np.asarray(result["bits"]) != bits).sum())
     dist = distortion(points, marked)
@@ -119,16 +121,27 @@ def trial(model_path, cache_path, params, detect_params, chain_text, method, see
     }
 
 
+@functools.lru_cache(maxsize=4)
 def _stored_reference(handle, n_coefficients):
-    """The Reference of a prepared handle, bases cut to ``n_coefficients``."""
+    """The Reference of a prepared handle, bases cut to ``n_coefficients``, with its detection aids.
+
+    Cached per worker process: the trials of one model share it.
+    """
     from .io.basis_store import BasisStore
+    from .kernels import resampling
 
     store, key = BasisStore(handle[0]), handle[1]
     centre, phi, seeds, members = store.load_meta(key)
     specs = [ClusterSpec(i, int(sd), 0, m) for i, (sd, m) in enumerate(zip(seeds, members))]
     parts = [store.load_cluster(key, i) for i in range(len(specs))]
+    bases = [p[1][:, :n_coefficients] for p in parts]
     normals = [p[2] for p in parts] if parts[0][2] is not None else None
-    return Reference(centre, phi, specs, [p[1][:, :n_coefficients] for p in parts], normals, [p[0] for p in parts])
+    model_normals, spacing = store.load_array(key, "model-normals"), store.load_array(key, "model-spacing")
+    grams = None
+    if normals is not None and model_normals is not None:
+        grams = [resampling.normal_gram(b, model_normals[s.members]) for s, b in zip(specs, bases)]
+    return Reference(centre, phi, specs, bases, normals, [p[0] for p in parts], model_normals=model_normals,
+                     spacing=spacing, grams=grams)
 
 
 def parse_case(text):
@@ -154,7 +167,7 @@ def fingerprint_trial(model_path, handle, params, detect_params, chain_text, cas
     t0 = time.perf_counter()
     cloud = read_points(model_path)
     points = cloud.points
-    ref = _stored_reference(handle, params.n_coefficients)
+    ref = _stored_reference(tuple(handle), params.n_coefficients)
     kind, k = parse_case(case)
     rng = np.random.default_rng(seed)
     names = [f"recipient-{i:05d}" for i in range(n_recipients)]
@@ -184,7 +197,7 @@ def fingerprint_trial(model_path, handle, params, detect_params, chain_text, cas
     attacked = apply_chain(suspect + ref.centre, parse_chain(chain_text) + [("shuffle", None)], rng=seed,
                            faces=cloud.faces())
     est = estimate_differences(attacked - ref.centre, centred, ref.specs, ref.bases, detect_params,
-                               params.displacement)
+                               params.displacement, **ref.detection_aids())
     s = fingerprint.scores(fingerprint_observation(est, ref.specs, params), bank)
     accused, _ = fingerprint.accuse(s, n_recipients, detect_params.epsilon)
     innocent = np.setdiff1d(np.arange(n_recipients), colluders)

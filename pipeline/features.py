@@ -370,7 +370,7 @@ def describe(points, *, factor=1.0, max_keypoints=INDEX_KEYPOINTS, rng=0):
     return keys, feats
 
 
-def geometry_hash(points, decimals=5):
+def geometry_hash(points, decimals=3):
     """Order- and format-independent hash of a point set's geometry (sha256, hex).
 
     Centres on the centroid, divides by the RMS distance from it, rounds to

@@ -110,6 +110,10 @@ class Reference:
     bases : list of (n_c, n_coefficients) float
     normals : list of (n_c, 3) float, or None for the xyz displacement
     radii : list of float
+    model_normals, spacing, grams : optional
+        What detection would otherwise compute per suspect: the original's
+        normals (n, 3) and point spacing (n,), and each cluster's
+        :func:`kernels.resampling.normal_gram`.
     """
 
     centre: np.ndarray
@@ -118,6 +122,13 @@ class Reference:
     bases: list = field(repr=False)
     normals: list | None = field(repr=False, default=None)
     radii: list = field(default_factory=list)
+    model_normals: np.ndarray | None = field(repr=False, default=None)   # (n, 3), for detection
+    spacing: np.ndarray | None = field(repr=False, default=None)         # (n,), for detection
+    grams: list | None = field(repr=False, default=None)                 # (3K, 3K) per cluster, normal model
+
+    def detection_aids(self):
+        """Keyword arguments of :func:`estimate_differences` that this reference saves computing."""
+        return {"normals": self.model_normals, "grams": self.grams, "spacing": self.spacing}
 
     def digests(self):
         """Membership and basis digest of every cluster (16 hex digits each)."""
@@ -490,21 +501,26 @@ def detect_with_bases(suspect, reference, specs, bases, material, params, detect
     return decode(estimate, specs, material, params, detect_params)
 
 
-def estimate_differences(suspect, reference, specs, bases, detect_params, displacement):
+def estimate_differences(suspect, reference, specs, bases, detect_params, displacement, *, normals=None,
+                         grams=None, spacing=None):
     """Register the suspect and estimate every cluster's r-hat - r (independent of the key).
 
     ``displacement`` is the embedding's (``WatermarkParams.displacement``).
+    ``normals`` (n, 3), ``grams`` (per cluster) and ``spacing`` (n,) of the
+    reference may come from the basis store (see :class:`Reference`); they are
+    computed here when not given.
 
     Returns
     -------
     dict with ``deltas`` (list of (K, 3) float), ``support`` and ``registration``
     """
     t0 = time.perf_counter()
-    spacing = float(np.median(resampling.nearest_spacing(reference)))
-    transform = _register(suspect, reference, spacing, detect_params.registration)
+    spacing = resampling.nearest_spacing(reference) if spacing is None else spacing
+    transform = _register(suspect, reference, float(np.median(spacing)), detect_params.registration)
     aligned = registration.apply(transform, suspect)
     t1 = time.perf_counter()
-    deltas, support = _coefficient_differences(aligned, reference, specs, bases, detect_params, displacement)
+    deltas, support = _coefficient_differences(aligned, reference, specs, bases, detect_params, displacement,
+                                               normals, grams, spacing)
     return {
         "seconds_registration": t1 - t0,
         "seconds_estimate": time.perf_counter() - t1,
@@ -576,18 +592,20 @@ def _register(suspect, reference, spacing, method):
     return found.transform if found.score > features.overlap_score(robust, suspect, reference, spacing) else robust
 
 
-def _coefficient_differences(aligned, reference, specs, bases, detect_params, displacement):
+def _coefficient_differences(aligned, reference, specs, bases, detect_params, displacement, normals=None,
+                             grams=None, spacing=None):
     if detect_params.correspondence == "paper":
         resampled, _ = resampling.snap_to_original(reference, aligned)
         deltas = [e.T @ (resampled[s.members] - reference[s.members]) for s, e in zip(specs, bases)]
         support = [int(np.any(resampled[s.members] != reference[s.members], axis=1).sum()) for s in specs]
         return deltas, support
-    normals = resampling.estimate_normals(reference)
+    normals = resampling.estimate_normals(reference) if normals is None else normals
     return resampling.fit_spectral_displacement(
         reference, normals, aligned, [s.members for s in specs], bases,
         iterations=detect_params.iterations, ridge=detect_params.ridge,
         tangential_gate=detect_params.tangential_gate, ratio_gate=detect_params.ratio_gate,
-        gate_switch=detect_params.gate_switch, normal_only=displacement == "normal",
+        gate_switch=detect_params.gate_switch, normal_only=displacement == "normal", grams=grams,
+        spacing=spacing,
     )
 
 

@@ -63,7 +63,7 @@ def _attacked(copy, chain, seed=7):
 
 
 @pytest.mark.parametrize("name,chain,method", [
-    ("bunny_zipper_faceref_34834", "crop:0.5+random_similarity+noise:0.3%", "robust"),
+    ("bunny_zipper_faceref_34834", "crop:0.5+random_similarity+noise:0.3%", "global"),
     ("kitten_12623", "crop:0.3+random_similarity", "robust"),
     ("nikolov_owl_12442", "random_similarity+clutter:3", "global"),
     ("kitten_12623", "outliers:0.5", "robust"),
@@ -81,7 +81,7 @@ def test_zero_bit_errors_inside_a_scene_of_other_scans(marked, shared_data):
               for k in ("fertility_4494", "spot_cow_2930", "nikolov_blackvase_17337")]
     moved = attacks.similarity(copy, attacks.random_rotation(rng), 0.6, [2.0, -1.0, 0.5])
     scene = attacks.scene(moved, others, 3.0, rng)
-    errors, result = _detect(marked, "nikolov_owl_12442", scene[rng.permutation(len(scene))])
+    errors, result = _detect(marked, "nikolov_owl_12442", scene[rng.permutation(len(scene))], "global")
     assert errors == 0, result
     assert result["detected"]
     assert 0.2 < result["registration"]["fitness"] < 0.3   # a quarter of the scene is the asset

@@ -95,3 +95,12 @@ class BasisStore:
         if data is None:
             return None
         return float(data["radius"]), data["basis"], data.get("normals")
+
+    def save_array(self, key, name, array):
+        """Any further array of an entry (detection aids: normals, spacing, grams)."""
+        self._save(key, name, {"array": np.asarray(array)})
+
+    def load_array(self, key, name):
+        """The array saved as ``name``, or None."""
+        data = self._load(key, name)
+        return None if data is None else data["array"]

@@ -53,7 +53,8 @@ class PlyData:
     @property
     def points(self):
         """(n, 3) float64 coordinates."""
-        return np.column_stack([self.vertices[a].astype(np.float64) for a in "xyz"])
+        with np.errstate(invalid="ignore"):   # a signalling NaN stays a NaN; the caller refuses it
+            return np.column_stack([self.vertices[a].astype(np.float64) for a in "xyz"])
 
     def faces(self):
         """(f, 3) int triangles, decoded from the element ``face`` (if any)."""

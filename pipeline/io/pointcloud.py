@@ -193,6 +193,8 @@ def _read_las(path):
     import laspy
 
     size = path.stat().st_size
+    with open(path, "rb") as f:
+        _check_las_block(f, size)
     try:
         with laspy.open(str(path)) as reader:
             _check_las_header(reader.header, size)
@@ -208,6 +210,54 @@ def _read_las(path):
                               np.asarray(las.y, dtype=np.float64),
                               np.asarray(las.z, dtype=np.float64)])
     return las, points
+
+
+def _check_las_block(f, size):
+    """The public header block's own fields against the file's length, before laspy parses it.
+
+    A corrupt count of variable-length records, an offset past the end or a
+    LAZ chunk table claiming billions of chunks would otherwise have laspy
+    loop, or the LAZ decoder allocate (and abort the process), for data the
+    file cannot hold.
+    """
+    import struct
+
+    head = f.read(375)
+    if len(head) < 227 or head[:4] != b"LASF":
+        raise ValueError("not a LAS/LAZ file (no 'LASF' signature or a header shorter than 227 bytes)")
+    major, minor = head[24], head[25]
+    if major != 1 or minor > 4:
+        raise ValueError(f"LAS version {major}.{minor} is not supported (1.0 to 1.4)")
+    header_size, offset, n_vlrs = struct.unpack_from("<HII", head, 94)
+    if not 227 <= header_size <= offset <= size:
+        raise ValueError(f"the header size ({header_size}) and the offset to the points ({offset}) "
+                         f"do not fit a {size}-byte file")
+    if n_vlrs * 54 > offset - header_size:
+        raise ValueError(f"the header declares {n_vlrs} variable-length records, more than fit before "
+                         f"the points at byte {offset}")
+    if minor >= 4 and len(head) >= 375:
+        start_evlr, n_evlrs = struct.unpack_from("<QI", head, 235)
+        if n_evlrs and (start_evlr > size or n_evlrs * 60 > size - start_evlr):
+            raise ValueError(f"the header declares {n_evlrs} extended records at byte {start_evlr}, "
+                             f"beyond the {size}-byte file")
+    if head[104] & 0xC0:                                  # compressed (LAZ): check the chunk table
+        count = struct.unpack_from("<I", head, 107)[0]
+        if minor >= 4 and len(head) >= 255:
+            count = max(count, struct.unpack_from("<Q", head, 247)[0])
+        f.seek(offset)
+        raw = f.read(8)
+        if len(raw) < 8:
+            raise ValueError("truncated: the LAZ chunk table offset is missing")
+        table = struct.unpack("<q", raw)[0]
+        if table == -1:
+            return
+        if not offset + 8 <= table <= size - 8:
+            raise ValueError(f"the LAZ chunk table offset {table} lies outside the {size}-byte file")
+        f.seek(table)
+        _, n_chunks = struct.unpack("<II", f.read(8))
+        if n_chunks > min(count + 1, size):
+            raise ValueError(f"the LAZ chunk table declares {n_chunks} chunks for {count} points "
+                             f"in a {size}-byte file")
 
 
 def _check_las_header(header, size):
@@ -272,7 +322,11 @@ def _write_las(las, points, tmp):
 
     out = laspy.LasData(header=las.header, points=las.points.copy())
     out.x, out.y, out.z = points[:, 0], points[:, 1], points[:, 2]
-    out.write(str(tmp))
+    # header strings that are not ASCII (they were read as they are) must not stop the write
+    with laspy.open(str(tmp), mode="w", header=out.header, encoding_errors="replace") as writer:
+        writer.write_points(out.points)
+        if out.header.evlrs:
+            writer.write_evlrs(out.header.evlrs)
 
 
 def _serialise(cloud, points, path):

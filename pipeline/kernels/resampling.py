@@ -26,7 +26,7 @@ from scipy.spatial import cKDTree
 
 __all__ = [
     "nearest_spacing", "estimate_normals", "snap_to_original", "fit_spectral_displacement",
-    "normal_noise",
+    "normal_noise", "normal_gram",
 ]
 
 
@@ -101,9 +101,30 @@ def snap_to_original(original, suspect):
     return resampled, matched
 
 
+def normal_gram(basis, normals):
+    """G^T G of one cluster's normal-only model, G = [n_x E | n_y E | n_z E].
+
+    When every original point is matched by exactly one suspect point, the
+    normal equations of the normal-only fit are G^T G / var; otherwise they
+    differ from it only at the points matched other than once, so this is
+    computed once per original (the basis store keeps it).
+
+    Parameters
+    ----------
+    basis : (n_c, K) float
+    normals : (n_c, 3) float, the original's unit normals at the cluster's points
+
+    Returns
+    -------
+    (3K, 3K) float
+    """
+    g = np.concatenate([normals[:, a:a + 1] * basis for a in range(3)], axis=1)
+    return g.T @ g
+
+
 def fit_spectral_displacement(original, normals, suspect, clusters, bases, *,
                               iterations=3, ridge=1e-3, cut=None, tangential_gate=0.25,
-                              ratio_gate=0.5, gate_switch=0.4, normal_only=False):
+                              ratio_gate=0.5, gate_switch=0.4, normal_only=False, grams=None, spacing=None):
     """Least-squares coefficient differences of every cluster.
 
     Parameters
@@ -132,6 +153,12 @@ def fit_spectral_displacement(original, normals, suspect, clusters, bases, *,
         The watermark moved points along their normals only (``along_normals``):
         the model is then original + n n^T E X, fitted from the normal misfit
         alone; the gates are not used.
+    grams : list of (3K, 3K) float, optional
+        :func:`normal_gram` of each cluster with ``normals``; with
+        ``normal_only`` the normal equations are updated from it at the points
+        matched other than once instead of being summed over every point.
+    spacing : (n,) float, optional
+        :func:`nearest_spacing` of ``original`` (computed when not given).
 
     Returns
     -------
@@ -140,7 +167,7 @@ def fit_spectral_displacement(original, normals, suspect, clusters, bases, *,
     support : list of int
         Suspect points used per cluster (last iteration).
     """
-    spacing = nearest_spacing(original)
+    spacing = nearest_spacing(original) if spacing is None else spacing
     if cut is None:
         cut = 4.0 * float(np.median(spacing))
     deltas = [np.zeros((e.shape[1], 3)) for e in bases]
@@ -176,7 +203,7 @@ def fit_spectral_displacement(original, normals, suspect, clusters, bases, *,
                 reliable = dist[pick] < tangential_gate * spacing[nearest[pick]]
             deltas[c] = _solve_cluster(
                 original, normals, deformed, suspect[pick], nearest[pick], reliable, members,
-                basis, ridge,
+                basis, ridge, gram=grams[c] if (grams is not None and normal_only) else None,
             )
     return deltas, support
 
@@ -202,7 +229,7 @@ def normal_noise(points, targets, normals):
     return 1.4826 * float(np.median(np.abs(offset - np.median(offset))))
 
 
-def _solve_cluster(original, normals, deformed, points, targets, reliable, members, basis, ridge):
+def _solve_cluster(original, normals, deformed, points, targets, reliable, members, basis, ridge, gram=None):
     """One weighted least-squares solve for a cluster's coefficient differences."""
     local = np.full(len(original), -1, dtype=np.int64)
     local[members] = np.arange(len(members))
@@ -221,19 +248,31 @@ def _solve_cluster(original, normals, deformed, points, targets, reliable, membe
         var_t = max(float(np.median((tangential[reliable] ** 2).sum(axis=1)) / 2.0), var_n)
         weight = weight + reliable[:, None, None] * (np.eye(3) - outer) / var_t
     size = len(members)
-    m = np.zeros((size, 3, 3))
-    np.add.at(m, j, weight)
     rhs_points = np.zeros((size, 3))
     np.add.at(rhs_points, j, np.einsum("kab,kb->ka", weight, residual))
     k = basis.shape[1]
-    normal_matrix = np.empty((3 * k, 3 * k))
-    for a in range(3):
-        for b in range(a, 3):
-            block = basis.T @ (m[:, a, b][:, None] * basis)
-            normal_matrix[a * k:(a + 1) * k, b * k:(b + 1) * k] = block
-            normal_matrix[b * k:(b + 1) * k, a * k:(a + 1) * k] = block
+    if gram is not None and not reliable.any():
+        normal_matrix = _normal_matrix_from_gram(gram, np.bincount(j, minlength=size), normals[members], basis) / var_n
+    else:
+        m = np.zeros((size, 3, 3))
+        np.add.at(m, j, weight)
+        normal_matrix = np.empty((3 * k, 3 * k))
+        for a in range(3):
+            for b in range(a, 3):
+                block = basis.T @ (m[:, a, b][:, None] * basis)
+                normal_matrix[a * k:(a + 1) * k, b * k:(b + 1) * k] = block
+                normal_matrix[b * k:(b + 1) * k, a * k:(a + 1) * k] = block
     rhs = (basis.T @ rhs_points).T.reshape(-1)          # [axis x | axis y | axis z]
     lam = ridge * float(np.trace(normal_matrix)) / (3 * k)
     normal_matrix[np.diag_indices_from(normal_matrix)] += lam
     solution = sl.solve(normal_matrix, rhs, assume_a="pos")
     return solution.reshape(3, k).T
+
+
+def _normal_matrix_from_gram(gram, counts, normals, basis):
+    """sum_j counts_j g_j g_j^T = G^T G + G_d^T diag(counts - 1) G_d over the points with counts != 1."""
+    other = np.flatnonzero(counts != 1)
+    if len(other) == 0:
+        return gram.copy()
+    g = np.concatenate([normals[other, a:a + 1] * basis[other] for a in range(3)], axis=1)
+    return gram + g.T @ ((counts[other] - 1.0)[:, None] * g)

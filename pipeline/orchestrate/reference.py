@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..io.basis_store import BasisStore
+from ..kernels import resampling
 from ..watermark import (ClusterSpec, Reference, cluster_basis, cluster_normals, frame_of,
                          plan_clusters)
 
@@ -67,7 +68,27 @@ def cluster_reference(points, centre, spec, params, store, key):
     return radius, basis, normals
 
 
-def load_reference(points, params, store, key, recorded=None, source="the ledger"):
+def _aid(store, key, name, compute):
+    value = store.load_array(key, name)
+    if value is None:
+        value = compute()
+        store.save_array(key, name, value)
+    return value
+
+
+def detection_aids(points, centre, specs, bases, params, store, key):
+    """The original's normals and spacing, and the clusters' normal-model Grams, from the store or computed."""
+    centred = points - centre
+    normals = _aid(store, key, "model-normals", lambda: resampling.estimate_normals(centred))
+    spacing = _aid(store, key, "model-spacing", lambda: resampling.nearest_spacing(centred))
+    grams = None
+    if params.displacement == "normal":
+        grams = [_aid(store, key, f"gram-{s.index}", lambda s=s, b=b: resampling.normal_gram(b, normals[s.members]))
+                 for s, b in zip(specs, bases)]
+    return normals, spacing, grams
+
+
+def load_reference(points, params, store, key, recorded=None, source="the ledger", detection=False):
     """The whole reference of an original, verified against recorded digests.
 
     Parameters
@@ -78,6 +99,9 @@ def load_reference(points, params, store, key, recorded=None, source="the ledger
     key : str
     recorded : dict, optional
         ``{"membership": [...], "basis": [...]}`` as recorded at embedding.
+    detection : bool
+        Also load (or compute once and store) what detection needs besides the
+        bases: :meth:`Reference.detection_aids`.
 
     Returns
     -------
@@ -88,11 +112,16 @@ def load_reference(points, params, store, key, recorded=None, source="the ledger
     ReferenceMismatch
         When the rebuilt (or stored) reference differs from ``recorded``.
     """
+    store = BasisStore(store) if not isinstance(store, BasisStore) else store
     centre, phi, specs = plan_reference(points, params, store, key)
     parts = [cluster_reference(points, centre, s, params, store, key) for s in specs]
     normals = None if params.displacement != "normal" else [p[2] for p in parts]
-    ref = Reference(np.asarray(centre), float(phi), specs, [p[1] for p in parts], normals,
-                    [float(p[0]) for p in parts])
+    bases = [p[1] for p in parts]
+    aids = {}
+    if detection:
+        aids = dict(zip(("model_normals", "spacing", "grams"),
+                        detection_aids(points, np.asarray(centre), specs, bases, params, store, key)))
+    ref = Reference(np.asarray(centre), float(phi), specs, bases, normals, [float(p[0]) for p in parts], **aids)
     if recorded is not None:
         ref.verify(recorded, source)
     return ref

@@ -50,16 +50,16 @@ def _limit_memory():
     return limit
 
 
-def _save(failures, name, example):
+def _save(failures, name, example, fixed=False):
     data = example if isinstance(example, bytes) else example[1]
     suffix = ".yaml" if isinstance(example, bytes) else example[0]
     failures.mkdir(parents=True, exist_ok=True)
-    path = failures / f"{name}-{hashlib.sha256(data).hexdigest()[:12]}{suffix}"
+    path = failures / (f"{name}{suffix}" if fixed else f"{name}-{hashlib.sha256(data).hexdigest()[:12]}{suffix}")
     path.write_bytes(data)
     return path
 
 
-def run_target(name, seconds, data_dir, failures, max_failures=5):
+def run_target(name, seconds, data_dir, failures, max_failures=5, keep_last=True):
     """Fuzz one target for ``seconds``; returns (executions, outcome counts, failure lines)."""
     target = TARGETS[name]
     strategy = target.strategy(data_dir)
@@ -74,6 +74,8 @@ def run_target(name, seconds, data_dir, failures, max_failures=5):
                   print_blob=False, report_multiple_bugs=False)
         @given(strategy)
         def one(example):
+            if keep_last:   # a crash that kills the process (a native abort) leaves its input here
+                _save(failures, f"{name}-last", example, fixed=True)
             signal.alarm(PER_INPUT_SECONDS)
             try:
                 outcome = target.check(example, folder)

@@ -93,3 +93,23 @@ def test_normal_only_fit_recovers_a_normal_direction_watermark_from_fresh_sample
         score[normal_only] = np.corrcoef(estimate.ravel(), delta.ravel())[0, 1]
     assert score[True] > 0.5
     assert score[True] > score[False]
+
+
+def test_the_normal_model_gram_shortcut_equals_the_full_normal_equations():
+    """Points matched 0, 1 or 3 times: G^T G plus the update at those points is the full sum."""
+    from pipeline.kernels import resampling
+
+    rng = np.random.default_rng(5)
+    original = rng.normal(size=(600, 3))
+    normals = rng.normal(size=(600, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    members = np.arange(100, 500)
+    basis = np.linalg.qr(rng.normal(size=(400, 24)))[0]
+    targets = np.concatenate([members[:300], np.repeat(members[300:320], 3)])     # 80 never matched
+    points = original[targets] + 0.01 * rng.normal(size=(len(targets), 3))
+    none = np.zeros(len(targets), dtype=bool)
+    full = resampling._solve_cluster(original, normals, original, points, targets, none, members, basis, 1.0)
+    gram = resampling.normal_gram(basis, normals[members])
+    fast = resampling._solve_cluster(original, normals, original, points, targets, none, members, basis, 1.0,
+                                     gram=gram)
+    assert np.allclose(fast, full, rtol=1e-10, atol=1e-14) and np.abs(full).max() > 1e-3
