@@ -217,28 +217,6 @@ def fingerprint_trial(model_path, handle, params, detect_params, chain_text, cas
     }
 
 
-def plan_fingerprint_trials(cfg):
-    """Experiments with a ``collusion`` list: (experiment, model, params, chain, case, seed, recipients)."""
-    ev = cfg["evaluate"]
-    base = config_mod.watermark_params(cfg)
-    out = []
-    for exp in ev["experiments"]:
-        if not exp.get("collusion"):
-            continue
-        reps = exp.get("repetitions", ev["repetitions"])
-        for model in exp["models"]:
-            for overrides in exp.get("parameters") or [{}]:
-                params = replace(base, **overrides)
-                for chain in exp["attacks"]:
-                    parse_chain(chain)
-                    for case in exp["collusion"]:
-                        parse_case(case)
-                        for rep in range(reps):
-                            out.append((exp["name"], model, params, chain, case, 1000 * rep + 29,
-                                        exp.get("recipients", 1000)))
-    return out
-
-
 def _strength(chain):
     values = [s for _, s in chain if s is not None]
     return float(values[-1]) if values else float("nan")
@@ -277,24 +255,32 @@ def _prep_key(model, params):
                       default=str)
 
 
-def plan_trials(cfg):
-    """Expand the experiments into (experiment, model, params, chain, method, seed) tuples."""
+def _cells(cfg, collusion):
+    """(experiment, model, params, chain, repetitions) of the message or of the fingerprint experiments."""
     ev = cfg["evaluate"]
     base = config_mod.watermark_params(cfg)
-    out = []
     for exp in ev["experiments"]:
-        if exp.get("collusion"):
+        if bool(exp.get("collusion")) != collusion:
             continue
-        reps = exp.get("repetitions", ev["repetitions"])
         for model in exp["models"]:
             for overrides in exp.get("parameters") or [{}]:
-                params = replace(base, **overrides)
                 for chain in exp["attacks"]:
                     parse_chain(chain)  # fail early on a typo
-                    for method in exp.get("methods") or ev["methods"]:
-                        for rep in range(reps):
-                            out.append((exp["name"], model, params, chain, method, 1000 * rep + 17))
-    return out
+                    yield exp, model, replace(base, **overrides), chain, exp.get("repetitions", ev["repetitions"])
+
+
+def plan_trials(cfg):
+    """Expand the message experiments into (experiment, model, params, chain, method, seed) tuples."""
+    return [(exp["name"], model, params, chain, method, 1000 * rep + 17)
+            for exp, model, params, chain, reps in _cells(cfg, collusion=False)
+            for method in exp.get("methods") or cfg["evaluate"]["methods"] for rep in range(reps)]
+
+
+def plan_fingerprint_trials(cfg):
+    """Experiments with a ``collusion`` list: (experiment, model, params, chain, case, seed, recipients)."""
+    return [(exp["name"], model, params, chain, case, 1000 * rep + 29, exp.get("recipients", 1000))
+            for exp, model, params, chain, reps in _cells(cfg, collusion=True)
+            for case in exp["collusion"] if parse_case(case) for rep in range(reps)]
 
 
 def run_evaluation(cfg, secret):

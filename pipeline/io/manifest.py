@@ -1,67 +1,20 @@
-"""Parquet manifests: one fixed pyarrow schema, one file per asset, written atomically.
+"""Small Parquet files with a fixed schema, written atomically: catalogues and scan results.
 
-The embedding manifest records what was issued (never the secret: key ids and
-fingerprints only).  All files of a folder read back as one table through
-``pyarrow.dataset``.
+What was issued lives in the ledger (:mod:`pipeline.io.ledger`).
 """
 
 from __future__ import annotations
 
 import io
-import re
-from pathlib import Path
 
 import pyarrow as pa
-import pyarrow.dataset as ds
 import pyarrow.parquet as pq
 
 from .pointcloud import atomic_write_bytes
 
-__all__ = ["SCHEMA_VERSION", "EMBED_SCHEMA", "CATALOG_SCHEMA", "write_rows", "read_rows",
-           "read_dataset", "manifest_path"]
+__all__ = ["SCHEMA_VERSION", "CATALOG_SCHEMA", "write_rows", "read_rows"]
 
 SCHEMA_VERSION = 1
-
-EMBED_SCHEMA = pa.schema([
-    ("schema_version", pa.int16()),
-    ("run_id", pa.string()),
-    ("asset_key", pa.string()),
-    ("source_path", pa.string()),
-    ("source_sha256", pa.string()),
-    ("output_path", pa.string()),
-    ("output_sha256", pa.string()),
-    ("recipient", pa.string()),
-    ("key_id", pa.string()),
-    ("key_fingerprint", pa.string()),
-    ("payload", pa.string()),
-    ("n_points", pa.int64()),
-    ("n_bits", pa.int32()),
-    ("chip_rate", pa.int32()),
-    ("beta", pa.float64()),
-    ("valence", pa.float64()),
-    ("n_clusters", pa.int32()),
-    ("cluster_size", pa.int32()),
-    ("on_touch", pa.string()),
-    ("cover", pa.bool_()),
-    ("chip_layout", pa.string()),
-    ("first_coefficient", pa.int32()),
-    ("crc_bits", pa.int32()),
-    ("displacement", pa.string()),
-    ("seeds_json", pa.string()),
-    ("cluster_seeds", pa.list_(pa.int64())),
-    ("cluster_sizes", pa.list_(pa.int64())),
-    ("cluster_radii", pa.list_(pa.float64())),
-    ("rmse_rel_diag", pa.float64()),
-    ("hausdorff_rel_diag", pa.float64()),
-    ("surface_rmse_rel_diag", pa.float64()),
-    ("seconds_plan", pa.float64()),
-    ("seconds_clusters", pa.float64()),
-    ("seconds_write", pa.float64()),
-    ("status", pa.string()),
-    ("error", pa.string()),
-    ("tool_version", pa.string()),
-    ("created_at", pa.timestamp("ms", tz="UTC")),
-])
 
 CATALOG_SCHEMA = pa.schema([
     ("schema_version", pa.int16()),
@@ -78,12 +31,6 @@ CATALOG_SCHEMA = pa.schema([
     ("status", pa.string()),
     ("error", pa.string()),
 ])
-
-
-def manifest_path(folder, asset_key):
-    """Manifest file of one asset: ``folder/<asset_key with / as __>.parquet``."""
-    safe = re.sub(r"[^A-Za-z0-9._-]", "_", asset_key.replace("/", "__"))
-    return Path(folder) / f"{safe}.parquet"
 
 
 def write_rows(path, rows, schema):
@@ -105,11 +52,3 @@ def read_rows(path):
         return pq.read_table(path).to_pylist()
     except (OSError, pa.ArrowInvalid):
         return []
-
-
-def read_dataset(folder, schema):
-    """All manifest files of a folder as one pyarrow Table."""
-    files = sorted(Path(folder).glob("*.parquet"))
-    if not files:
-        return schema.empty_table()
-    return ds.dataset([str(f) for f in files], schema=schema, format="parquet").to_table()

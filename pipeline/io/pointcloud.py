@@ -138,9 +138,9 @@ def check_output(source, output, *, same_format=True):
     source, output = Path(source), Path(output)
     if output.is_dir():
         raise InputError(f"{output}: is a folder; give the output file's name")
+    src_fmt = format_of(source)
     fmt = format_of(output)
     if same_format:
-        src_fmt = format_of(source)
         if fmt != src_fmt:
             raise InputError(f"{output}: output format {fmt} differs from the input format {src_fmt} "
                              f"(use the suffix {Path(source).suffix})")
@@ -180,6 +180,8 @@ def check_distinct(path, points, max_share=MAX_REPEATED_SHARE):
     """
     _, first, inverse = np.unique(points, axis=0, return_index=True, return_inverse=True)
     repeats = len(points) - len(first)
+    if len(first) == 1 and len(points) > 1:
+        raise InputError(f"{path}: all points are identical (the bounding box has zero size)")
     if repeats > max_share * len(points):
         earliest = first[np.asarray(inverse).reshape(-1)]
         twin = int(np.flatnonzero(earliest != np.arange(len(points)))[0])
