@@ -167,4 +167,53 @@ def run_demo(folder, config_path):
     print(f"detect {leak} (rotated, rescaled, shuffled) --ledger {job.manifests}: {result['verdict']}: "
           f"{named or 'nobody'}; issued to {pick['recipient']}")
     right = [a["recipient"] for a in result["accused"]] == [pick["recipient"]]
-    return 0 if counts["failed"] == 0 and right else 1
+    return 0 if counts["failed"] == 0 and right and _leak_scan(folder, cfg, secret, ok) else 1
+
+
+# three leaks found in the wild: (asset, recipient, attack chain, what happened to it, expected found)
+LEAKS = [("blob-b", "press-c", [("crop", 0.5), ("random_similarity", None)], "cropped to half, rotated and rescaled",
+          True),
+         ("shell-a", "market-b", [("noise", 0.003)], "with noise of 0.3 % added", True),
+         # a known gap (issue 13): a procedural shape inside procedural clutter is not registered yet
+         ("torus-a", "studio-a", [("random_similarity", None), ("clutter", 3.0)],
+          "placed in a scene of three times its points", False)]
+
+
+def _leak_scan(folder, cfg, secret, issued):
+    """Leak three issued copies, scan the folder, print the verdicts and where the evidence is."""
+    from pathlib import Path
+
+    from .io.pointcloud import read_points, write_array
+    from .kernels import attacks
+    from .orchestrate.scan import read_scan, run_scan
+
+    suspects = folder / "suspects"
+    truth = {}
+    for n, (asset, recipient, chain, what, _) in enumerate(LEAKS):
+        row = next(r for r in issued if (r["asset_key"], r["recipient"]) == (asset, recipient))
+        name = f"found-{n + 1}"
+        points = read_points(row["output_path"]).points
+        write_array(suspects, name, attacks.apply_chain(points, chain + [("shuffle", None)], 100 + n), "ply",
+                    keep_existing=False)
+        truth[name] = (row["asset_key"], row["recipient"], what, LEAKS[n][4])
+    scan_cfg = {**cfg, "scan": {**cfg["scan"], "suspects": str(suspects), "catalogue": cfg["catalog"]["source"],
+                                "out": str(Path(cfg["output"]["manifests"]).parent / "scan")}}
+    status = run_scan(scan_cfg, secret, force=True)
+    latest = {}
+    for r in sorted(read_scan(scan_cfg["scan"]["out"]), key=lambda r: r["scanned_at"]):
+        latest[Path(r["suspect_path"]).stem] = r
+    right, missed = 0, []
+    for name, (asset, recipient, what, expected) in truth.items():
+        r = latest[name]
+        ok = r["verdict"] == "match" and (r["candidate_asset"], r["recipient"]) == (asset, recipient)
+        right += ok
+        if (expected and not ok) or r["recipient"] not in (None, recipient):
+            missed.append(name)
+        known = "" if ok or expected else " (known gap: part-to-whole registration inside procedural clutter)"
+        print(f"  {name}.ply ({recipient}'s copy of {asset}, {what}): {r['verdict']}{known}"
+              + (f", {r['recipient']} named, score {r['score']:.1f} over threshold {r['threshold']:.1f}, "
+                 f"p = {r['p_value']:.2g}" if r["verdict"] == "match" else ""))
+    framed = [n for n in truth if latest[n]["recipient"] not in (None, truth[n][1])]
+    print(f"leak scan: {right}/{len(truth)} leaks attributed, {len(framed)} innocent recipients named; evidence report "
+          f"{Path(scan_cfg['scan']['out']) / 'report.md'}")
+    return status in (0, 1) and not missed

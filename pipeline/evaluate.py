@@ -325,10 +325,15 @@ def run_evaluation(cfg, secret):
                     fp_futures.append(client.submit(false_positives, model, prep[_prep_key(model, params)],
                                                     params, detect_params, material, ev["false_positive_keys"],
                                                     pure=False))
-        rows, fingerprint_rows, done = [], [], 0
+        rows, fingerprint_rows, errors, done = [], [], [], 0
         for fut in as_completed(list(futures)):
+            exp = futures.pop(fut)          # released: a lost worker does not recompute collected trials
+            if fut.status != "finished":    # a crashed trial (e.g. a native library fault) is reported, not fatal
+                errors.append(f"{exp}: {type(fut.exception()).__name__}: {fut.exception()}")
+                print(f"[pointmark] evaluate: trial failed: {errors[-1]}", file=sys.stderr, flush=True)
+                continue
             row = fut.result()
-            row["experiment"] = futures[fut]
+            row["experiment"] = exp
             (fingerprint_rows if "case" in row else rows).append(row)
             done += 1
             if done % 25 == 0 or done == len(futures):
@@ -344,8 +349,9 @@ def run_evaluation(cfg, secret):
     _write_table(out / "fingerprints.parquet", fingerprint_rows)
     write_report(out, rows, fp_rows, detect_params.p_threshold, time.perf_counter() - t0, fingerprint_rows)
     print(f"wrote {out / 'results.parquet'} ({len(rows)} trials), {out / 'fingerprints.parquet'} "
-          f"({len(fingerprint_rows)} trials), {out / 'summary.md'} and plots in {time.perf_counter() - t0:.0f}s")
-    return 0
+          f"({len(fingerprint_rows)} trials), {out / 'summary.md'} and plots in {time.perf_counter() - t0:.0f}s"
+          + (f"; {len(errors)} trials failed" if errors else ""))
+    return 1 if errors else 0
 
 
 def _write_table(path, rows):

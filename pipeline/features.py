@@ -423,11 +423,12 @@ class FeatureIndex:
 
     def save(self, path):
         """Write the index as a ``.npz`` file."""
+        from .io.pointcloud import atomic_write_bytes
+
         buf = io.BytesIO()
         np.savez(buf, keys=np.array(self.keys, dtype=str), features=self.features, owner=self.owner,
                  hashes=np.array(self.hashes, dtype=str), prior=self.prior)
-        with open(path, "wb") as f:
-            f.write(buf.getvalue())
+        atomic_write_bytes(path, buf.getvalue())
 
     @classmethod
     def load(cls, path):

@@ -181,7 +181,8 @@ def check_distinct(path, points, max_share=MAX_REPEATED_SHARE):
     _, first, inverse = np.unique(points, axis=0, return_index=True, return_inverse=True)
     repeats = len(points) - len(first)
     if len(first) == 1 and len(points) > 1:
-        raise InputError(f"{path}: all points are identical (the bounding box has zero size)")
+        raise InputError(f"{path}: all points are identical ({repeats} of {len(points)} points repeat another "
+                         f"point's coordinates; the bounding box has zero size)")
     if repeats > max_share * len(points):
         earliest = first[np.asarray(inverse).reshape(-1)]
         twin = int(np.flatnonzero(earliest != np.arange(len(points)))[0])

@@ -2,7 +2,8 @@
 
 Per suspect: (1) a suspect that is a catalogue original's own bytes is no
 match; (2) an exact sha256 match with an issued copy attributes at once;
-(3) otherwise the top-K catalogue assets by shape descriptor are checked
+(3) otherwise the top-K catalogue assets by local-descriptor votes
+(part-to-whole: crops, scenes) and the top-K by global shape descriptor are checked
 through the one attribution path (:mod:`pipeline.orchestrate.attribute`),
 each against every recipient issued under the keys held, and the verdict is
 corrected for everything scored.
@@ -21,6 +22,7 @@ Exit status: 0 no match, 1 at least one match, 2 bad config or secret,
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import sys
@@ -78,16 +80,46 @@ SCAN_SCHEMA = pa.schema([
 ])
 
 
-def triage(suspect_path, descriptors):
-    """Read a suspect, hash it, rank every catalogue asset by shape descriptor."""
+@functools.lru_cache(maxsize=2)
+def _index(path):
+    from ..features import FeatureIndex
+
+    return FeatureIndex.load(path)
+
+
+def triage(suspect_path, descriptors, index_path):
+    """Read a suspect, hash it, rank every catalogue asset two ways.
+
+    ``ranking``: by global shape descriptor (D2), right for whole copies;
+    ``index_ranking``: by votes of local descriptors (FPFH) over the catalogue
+    index, right for parts of an asset and assets inside a scene.
+    """
     t0 = time.perf_counter()
     points = read_points(suspect_path).points
     names = list(descriptors)
     dist = np.atleast_1d(descriptor_distance(d2_descriptor(points - points.mean(axis=0)),
                                              np.array([descriptors[k] for k in names])))
     order = np.argsort(dist, kind="stable")
+    index_ranking = [k for k, _ in _index(index_path).rank(points, top_k=len(names))] if index_path else []
     return {"path": str(suspect_path), "sha256": sha256_file(suspect_path), "n_points": len(points),
-            "ranking": [names[i] for i in order], "seconds": time.perf_counter() - t0}
+            "ranking": [names[i] for i in order], "index_ranking": index_ranking,
+            "seconds": time.perf_counter() - t0}
+
+
+def _candidates(info, view, top_k):
+    """The top-K of each ranking among the assets in view, index first, without repeats."""
+    pick = [a for a in info["index_ranking"] if a in view][:top_k] + [a for a in info["ranking"] if a in view][:top_k]
+    return list(dict.fromkeys(pick))
+
+
+def _build_index(out, cat_version, catalogue_paths):
+    """The catalogue's local-descriptor index, built once per catalogue version."""
+    from ..features import build_index
+
+    path = Path(out) / "state" / f"index-{cat_version}.npz"
+    if not path.exists() and catalogue_paths:
+        build_index({k: read_points(p).points for k, p in sorted(catalogue_paths.items())}).save(path)
+    return str(path) if path.exists() else None
 
 
 def _reference(cfg, secret):
@@ -107,7 +139,10 @@ def _reference(cfg, secret):
     by_sha = {r["output_sha256"]: r for r in rows if r["output_sha256"] not in originals}
     descriptors = {r["asset_key"]: r["descriptor"] for r in catalogue if r["asset_key"] in issued}
     assets = {r["asset_key"]: r["sha256"] for r in catalogue}
-    return ledger, materials, issued, by_sha, originals, descriptors, cat_version, assets
+    base = Path(sc["catalogue"]).resolve().parent
+    paths = {r["asset_key"]: (Path(r["path"]) if Path(r["path"]).is_absolute() else base / r["path"])
+             for r in catalogue if r["asset_key"] in issued}
+    return ledger, materials, issued, by_sha, originals, descriptors, cat_version, assets, paths
 
 
 def _result_path(out, sha, versions, failed=False):
@@ -123,7 +158,7 @@ def run_scan(cfg, secret, *, force=False):
     from .run import start_client
 
     sc = cfg["scan"]
-    ledger, materials, issued, by_sha, originals, descriptors, cat_version, assets = _reference(cfg, secret)
+    ledger, materials, issued, by_sha, originals, descriptors, cat_version, assets, paths = _reference(cfg, secret)
     versions = (ledger.version(), cat_version)
     suspects = [a.path for a in discover_assets(sc["suspects"])]
     detect_params = config_mod.detect_params(cfg)
@@ -131,12 +166,13 @@ def run_scan(cfg, secret, *, force=False):
     out = Path(sc["out"])
     out.mkdir(parents=True, exist_ok=True)
     state = _save_state(out, versions, [p.name for p in ledger.parts()], assets)
+    index_path = _build_index(out, cat_version, paths)
     previous = {} if force else _previous(out)
     t0 = time.perf_counter()
     counts = {"match": 0, "no match": 0, "inconclusive": 0, "failed": 0, "skipped": 0}
     client, cluster = start_client(cfg)
     try:
-        triages = {client.submit(triage, str(p), descriptors, pure=False): p for p in suspects}
+        triages = {client.submit(triage, str(p), descriptors, index_path, pure=False): p for p in suspects}
         pending = as_completed(list(triages))
         waiting, open_checks = {}, {}
         for fut in pending:
@@ -157,7 +193,7 @@ def run_scan(cfg, secret, *, force=False):
                     continue
                 view = _scope(issued, prev, state, out)
                 info["prev"] = prev
-                info["candidates"] = [a for a in info["ranking"] if a in view][:sc["top_k"]]
+                info["candidates"] = _candidates(info, view, sc["top_k"])
                 info["checks"], info["errors"] = [], []
                 subs = [client.submit(check_asset, info["path"], view[a][-1]["source_path"], view[a], materials,
                                       store, detect_params, pure=False) for a in info["candidates"]]
