@@ -111,7 +111,7 @@ KEY = _section("Key identity; the secret itself comes from POINTMARK_SECRET or s
 
 CATALOG = _section("The assets to watermark.", {
     "source": _p(("string", "null"), None,
-                 "A folder, a glob pattern, or a catalogue file (.parquet or .csv)."),
+                 "A folder, a glob pattern, a catalogue file (.parquet or .csv), or one point-cloud file."),
 })
 
 OUTPUT = _section("Where results go; relative paths are relative to the working directory.", {

@@ -45,7 +45,7 @@ class Asset:
 
 
 def discover_assets(source, *, default_recipients=()):
-    """Assets named by a folder, a glob pattern or a catalogue file.
+    """Assets named by a folder, a glob pattern, a catalogue file or one point-cloud file.
 
     Parameters
     ----------
@@ -66,6 +66,8 @@ def discover_assets(source, *, default_recipients=()):
                  and not p.name.startswith(".")]
         assets = [Asset(p.relative_to(path).with_suffix("").as_posix(), p, tuple(default_recipients))
                   for p in files]
+    elif path.is_file() and path.suffix.lower() in FORMATS:
+        assets = [Asset(path.stem, path, tuple(default_recipients))]     # one file: a catalogue of one
     elif any(ch in source_text for ch in "*?["):
         files = [Path(p) for p in glob.glob(source_text, recursive=True)
                  if Path(p).suffix.lower() in FORMATS]
