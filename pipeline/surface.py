@@ -95,6 +95,8 @@ def parse_attack(text):
         strength = float(value[:-1]) / 100.0 if value.endswith("%") else float(value)
     except ValueError:
         raise ValueError(f"attack {text!r}: strength {value!r} is not a number") from None
+    if not np.isfinite(strength) or strength < 0:
+        raise ValueError(f"attack {text!r}: the strength must be a finite number >= 0")
     return name, strength
 
 

@@ -64,7 +64,7 @@ def test_a_small_real_run_then_a_scan(workdir):
     shutil.copy(workdir / "out" / "workflow" / "marked" / "market-b" / "asset-1.pcd", leak / "found.pcd")
     res = _snakemake(workdir, "--cores", "2", "scan")
     assert res.returncode == 0, res.stdout + res.stderr
-    found = ds.dataset(str(workdir / "out" / "workflow" / "scan"), format="parquet").to_table().to_pylist()
+    found = ds.dataset(str(workdir / "out" / "workflow" / "scan" / "results"), format="parquet").to_table().to_pylist()
     assert [(r["candidate_asset"], r["recipient"], r["verdict"]) for r in found] == [("asset-1", "market-b", "match")]
     table = ds.dataset(str(workdir / "out" / "workflow" / "manifests" / "copies"), format="parquet").to_table()
     assert table.num_rows == 6 and set(table["status"].to_pylist()) == {"ok"}

@@ -124,7 +124,7 @@ def write_summary(rows, path, epsilon):
         score = f"{r['score']:.1f} / {r['threshold']:.1f}" if r.get("score") is not None and r.get("threshold") else "-"
         p = f"{r['p_value']:.2g}" if r.get("p_value") is not None else "-"
         margin = f"{r['margin']:.1f}" if r.get("margin") is not None else "-"
-        picture = f"[picture]({Path(r['evidence_path']).name})" if r.get("evidence_path") else "-"
+        picture = f"[picture](evidence/{Path(r['evidence_path']).name})" if r.get("evidence_path") else "-"
         note = f" ({r['error']})" if r.get("error") else ""
         lines.append(f"| {Path(r['suspect_path']).name} | {r['verdict']}{note} | {r.get('candidate_asset') or '-'} | "
                      f"{who} | {score} | {p} | {margin} | {r.get('n_checked') or '-'} | {picture} |")

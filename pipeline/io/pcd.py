@@ -218,6 +218,9 @@ def _read_ascii(header, fields, n, body):
     kinds = tuple(_kind(types[a]) for a in "xyz")
     for i, a in enumerate("xyz"):
         if kinds[i] == "f4":
+            if len(points) and np.abs(points[:, i]).max() > np.finfo(np.float32).max:
+                raise PcdError(f"field {a} is declared float32 but holds {np.abs(points[:, i]).max():.3g}, "
+                               f"beyond float32's range")
             points[:, i] = points[:, i].astype(np.float32)
     return PcdData(header, fields, "ascii", points, lines=lines, rows=np.asarray(rows, dtype=np.int64),
                    cols=cols, kinds=kinds)

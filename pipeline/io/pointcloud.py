@@ -209,6 +209,7 @@ def _read_las(path):
     if len(las.points) != las.header.point_count:
         raise ValueError(f"the header declares {las.header.point_count} points, "
                          f"{len(las.points)} could be read")
+    _check_las_writable(las.header)
     points = np.column_stack([np.asarray(las.x, dtype=np.float64),
                               np.asarray(las.y, dtype=np.float64),
                               np.asarray(las.z, dtype=np.float64)])
@@ -315,16 +316,35 @@ def write_points(cloud, points, path):
     elif fmt in _WRITERS:
         atomic_write_bytes(path, _serialise(cloud, points, path))
     else:
-        with _atomic_target(path) as tmp:
-            _write_las(cloud.native, points, tmp)
+        try:
+            with _atomic_target(path) as tmp:
+                _write_las(cloud.native, points, tmp)
+        except ValueError as exc:
+            raise InputError(f"{path}: {exc}") from None
     return path
+
+
+def _check_las_writable(header):
+    """Refuse, before any work, a LAS version and point format that cannot be written back."""
+    from laspy.point import dims
+
+    version = str(header.version)
+    try:
+        dims.raise_if_version_not_compatible_with_fmt(header.point_format.id, version)
+    except Exception:  # laspy's errors for versions it reads but cannot write
+        raise ValueError(f"LAS version {version} does not allow point format {header.point_format.id}, so the "
+                         f"file cannot be written back; convert it to a version that does first") from None
 
 
 def _write_las(las, points, tmp):
     import laspy
 
     out = laspy.LasData(header=las.header, points=las.points.copy())
-    out.x, out.y, out.z = points[:, 0], points[:, 1], points[:, 2]
+    try:
+        out.x, out.y, out.z = points[:, 0], points[:, 1], points[:, 2]
+    except (OverflowError, ValueError):
+        raise ValueError("the coordinates do not fit the file's scale and offset (32-bit integers); "
+                         "the header cannot hold them") from None
     # header strings that are not ASCII (they were read as they are) must not stop the write
     with laspy.open(str(tmp), mode="w", header=out.header, encoding_errors="replace") as writer:
         writer.write_points(out.points)
@@ -357,8 +377,12 @@ class _atomic_target:
         if exc_type is None:
             umask = os.umask(0)
             os.umask(umask)
-            os.chmod(self.tmp, 0o666 & ~umask)      # mkstemp's 0600 would survive the rename
-            os.replace(self.tmp, self.path)
+            try:
+                os.chmod(self.tmp, 0o666 & ~umask)      # mkstemp's 0600 would survive the rename
+                os.replace(self.tmp, self.path)
+            except OSError:
+                self.tmp.unlink(missing_ok=True)
+                raise
         else:
             self.tmp.unlink(missing_ok=True)
         return False

@@ -8,6 +8,11 @@ through the one attribution path (:mod:`pipeline.orchestrate.attribute`),
 each against every recipient issued under the keys held, and the verdict is
 corrected for everything scored.
 
+Layout of ``scan.out``: ``results/`` (one Parquet file per suspect and
+ledger/catalogue version, or ``.failed.parquet``), ``evidence/`` (a picture
+per match), ``state/`` (what each version held, the feature index) and
+``report.md``.
+
 Each suspect ends as exactly one of match, inconclusive, no match or failed.
 A failed suspect is counted, sets exit status 3 and is retried by the next
 scan; a suspect is skipped only when it was scanned against the same ledger
@@ -39,7 +44,7 @@ from ..io.catalog import discover_assets, read_catalogue
 from ..io.evidence import render_match, write_summary
 from ..io.ledger import Ledger
 from ..io.manifest import read_rows, write_rows
-from ..io.pointcloud import atomic_write_bytes, read_points, sha256_file
+from ..io.pointcloud import InputError, atomic_write_bytes, read_points, sha256_file
 from ..kernels.descriptor import d2_descriptor, descriptor_distance
 from .attribute import check_asset, decide
 from .detect import held_rows
@@ -117,9 +122,23 @@ def _build_index(out, cat_version, catalogue_paths):
     from ..features import build_index
 
     path = Path(out) / "state" / f"index-{cat_version}.npz"
-    if not path.exists() and catalogue_paths:
-        build_index({k: read_points(p).points for k, p in sorted(catalogue_paths.items())}).save(path)
-    return str(path) if path.exists() else None
+    if path.exists() or not catalogue_paths:
+        return str(path) if path.exists() else None
+    clouds, missing = {}, []
+    for key, file in sorted(catalogue_paths.items()):
+        try:
+            clouds[key] = read_points(file).points
+        except InputError:
+            missing.append(key)          # its checks fail (and are retried); D2 still ranks it
+    if not clouds:
+        return None
+    index = build_index(clouds)
+    if missing:                          # not saved: the next scan builds it whole
+        tmp = Path(out) / "state" / f".index-{cat_version}-partial.npz"
+        index.save(tmp)
+        return str(tmp)
+    index.save(path)
+    return str(path)
 
 
 def _reference(cfg, secret):
@@ -147,8 +166,8 @@ def _reference(cfg, secret):
 
 def _result_path(out, sha, versions, failed=False):
     if failed:
-        return Path(out) / f"{sha[:32]}.failed.parquet"
-    return Path(out) / f"{sha[:32]}-{versions[0]}-{versions[1]}.parquet"
+        return Path(out) / "results" / f"{sha[:32]}.failed.parquet"
+    return Path(out) / "results" / f"{sha[:32]}-{versions[0]}-{versions[1]}.parquet"
 
 
 def run_scan(cfg, secret, *, force=False):
@@ -277,7 +296,7 @@ def _finish(out, versions, info, epsilon, issued, store):
     top = result["accused"][0] if result["accused"] else None
     evidence = None
     if top is not None and top.get("cluster_scores") is not None:
-        evidence = out / f"{info['sha256'][:32]}-{versions[0]}-{versions[1]}.png"
+        evidence = out / "evidence" / f"{info['sha256'][:32]}-{versions[0]}-{versions[1]}.png"
         render_evidence(info["path"], issued[top["asset_key"]][-1]["source_path"], top, store, evidence)
     reg = top["registration"] if top else next((g["registration"] for c in info["checks"] for g in c["groups"]), {})
     seconds = [c["seconds"] for c in info["checks"]]
@@ -350,9 +369,13 @@ def _record(out, versions, info, verdict, **columns):
 
 
 def read_scan(folder):
-    """All result rows of a scan folder (temporary files of interrupted writers are ignored)."""
+    """All result rows of a scan folder (temporary files of interrupted writers are ignored).
+
+    The rows are ``scan.out/results/*.parquet``; ``pyarrow.dataset.dataset(scan.out / "results")``
+    reads them as one table.
+    """
     rows = []
-    for path in sorted(Path(folder).glob("*.parquet")):
+    for path in sorted((Path(folder) / "results").glob("*.parquet")):
         if not path.name.startswith("."):
             rows.extend(read_rows(path))
     return rows

@@ -18,7 +18,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .. import __version__
-from ..io.pointcloud import InputError, read_points, sha256_file, write_points
+from ..io.pointcloud import InputError, check_distinct, read_points, sha256_file, write_points
 from ..kernels import digest, fingerprint, resampling
 from ..watermark import WatermarkError, distortion, fingerprint_displacement, fingerprint_length
 from .reference import cluster_reference, load_reference, plan_reference
@@ -65,6 +65,7 @@ def plan_asset(asset_key, path, source_sha256, params, store, store_key):
     """Load an asset and grow its clusters (or take them from the store)."""
     t0 = time.perf_counter()
     points = _points(path, source_sha256).points
+    check_distinct(path, points)          # repeated points: a failed row, as in `pointmark embed`
     try:
         centre, phi, specs = plan_reference(points, params, store, store_key)
     except WatermarkError as exc:

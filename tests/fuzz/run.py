@@ -59,8 +59,12 @@ def _save(failures, name, example, fixed=False):
     return path
 
 
-def run_target(name, seconds, data_dir, failures, max_failures=5, keep_last=True):
-    """Fuzz one target for ``seconds``; returns (executions, outcome counts, failure lines)."""
+def run_target(name, seconds, data_dir, failures, max_failures=5, keep_last=True, derandomize=False):
+    """Fuzz one target for ``seconds``; returns (executions, outcome counts, failure lines).
+
+    With ``derandomize`` the examples are the same on every run (the test
+    suite's regression pass: one batch, reproducible); ``make fuzz`` explores.
+    """
     target = TARGETS[name]
     strategy = target.strategy(data_dir)
     counts = Counter()
@@ -69,7 +73,7 @@ def run_target(name, seconds, data_dir, failures, max_failures=5, keep_last=True
     with tempfile.TemporaryDirectory(prefix=f"pointmark-fuzz-{name}-") as tmp:
         folder = Path(tmp)
 
-        @settings(max_examples=200, deadline=None, database=None, derandomize=False,
+        @settings(max_examples=200, deadline=None, database=None, derandomize=derandomize,
                   suppress_health_check=list(HealthCheck), phases=[Phase.generate, Phase.shrink],
                   print_blob=False, report_multiple_bugs=False)
         @given(strategy)
@@ -87,7 +91,9 @@ def run_target(name, seconds, data_dir, failures, max_failures=5, keep_last=True
             counts[outcome] += 1
 
         end = time.monotonic() + seconds
-        while time.monotonic() < end and len(found) < max_failures:
+        rounds = 0
+        while time.monotonic() < end and len(found) < max_failures and not (derandomize and rounds):
+            rounds += 1
             try:
                 one()
             except Exception as exc:  # the property failed; hypothesis has shrunk the input
@@ -105,6 +111,8 @@ def main(argv=None):
     parser.add_argument("--target", action="append", choices=sorted(TARGETS), help="default: all")
     parser.add_argument("--data", default=os.environ.get("POINTMARK_TEST_DATA", str(ROOT.parent / "shared" / "data")))
     parser.add_argument("--failures", default=str(Path(tempfile.gettempdir()) / "pointmark-fuzz-failures"))
+    parser.add_argument("--derandomize", action="store_true",
+                        help="the same examples every run, one batch (the test suite's pass)")
     args = parser.parse_args(argv)
     names = args.target or list(TARGETS)
     data_dir = Path(args.data)
@@ -119,7 +127,8 @@ def main(argv=None):
     failed = False
     for name in names:
         t0 = time.monotonic()
-        runs, counts, found = run_target(name, args.seconds, data_dir, Path(args.failures))
+        runs, counts, found = run_target(name, args.seconds, data_dir, Path(args.failures),
+                                         derandomize=args.derandomize)
         took = time.monotonic() - t0
         print(f"{name}: {runs} executions in {took:.0f} s ({runs / max(took, 1e-9):.0f}/s): "
               f"{counts['ok']} valid clouds or configs, {counts['error']} clean one-line errors, "

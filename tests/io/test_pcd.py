@@ -122,3 +122,17 @@ def test_organised_cloud_and_padding_fields_are_kept():
     again = np.frombuffer(out[len(head):], dtype=dtype)
     assert (again["pad1"] == 0xAB).all() and (again["pad2"] == 0xCD).all()
     assert np.array_equal(again["x"], np.arange(6, dtype="<f4") + 1)
+
+
+def test_an_ascii_float32_field_beyond_its_range_is_one_clean_error(tmp_path):
+    import warnings
+
+    from pipeline.io.pointcloud import InputError, read_points
+
+    path = tmp_path / "big.pcd"
+    path.write_text("VERSION .7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 2\nHEIGHT 1\n"
+                    "VIEWPOINT 0 0 0 1 0 0 0\nPOINTS 2\nDATA ascii\n1e308 0 0\n1 1 1\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(InputError, match="beyond float32's range"):
+            read_points(path)

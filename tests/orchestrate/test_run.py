@@ -333,3 +333,17 @@ def test_an_asset_key_that_escapes_the_output_folder_is_refused(tmp_path, key):
                           "--serial"], cwd=tmp_path, env=env, capture_output=True, text=True)
     assert res.returncode == 2 and "would leave the output folder" in res.stderr
     assert not (tmp_path / "out" / "marked").exists() and not (tmp_path / "escape").exists()
+
+
+def test_an_asset_with_every_point_stored_twice_is_a_failed_row(tmp_path):
+    import numpy as np
+
+    from pipeline.io.pointcloud import read_points
+
+    src = make_catalogue(tmp_path / "assets", n_assets=1)
+    points = read_points(src / "asset-0.ply").points
+    write_array(src, "doubled", np.vstack([points, points]), "ply")
+    job, counts = _run(write_config(tmp_path, src), serial=True)
+    assert counts == {"ok": 1, "failed": 1, "skipped": 0}
+    failed = [r for r in _rows(job) if r["status"] == "failed"]
+    assert {r["asset_key"] for r in failed} == {"doubled"} and "repeat another point" in failed[0]["error"]

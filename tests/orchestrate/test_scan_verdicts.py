@@ -56,7 +56,7 @@ def test_a_check_that_raises_is_failed_exit_3_and_retried_with_one_result_file(w
         assert res.returncode == 3, res.stdout + res.stderr
         assert "1 failed" in res.stdout and "no match" not in _latest(tmp)["found.ply"]["verdict"]
         assert _latest(tmp)["found.ply"]["verdict"] == "failed"
-    assert len(list((tmp / "scan").glob("*.failed.parquet"))) == 1
+    assert len(list((tmp / "scan" / "results").glob("*.failed.parquet"))) == 1
     hidden.rename(original)
     res = _scan(tmp)
     assert res.returncode == 1, res.stdout + res.stderr      # retried, and found
@@ -95,8 +95,8 @@ def test_a_secret_that_opens_no_issued_key_refuses_the_scan_and_marks_nothing(wo
 
 def test_leftover_temporary_files_are_ignored(world):
     tmp, _ = world
-    (tmp / "scan").mkdir()
-    (tmp / "scan" / ".found.x1y2.tmp.parquet").write_bytes(b"PAR1 half a file")
+    (tmp / "scan" / "results").mkdir(parents=True)
+    (tmp / "scan" / "results" / ".found.x1y2.tmp.parquet").write_bytes(b"PAR1 half a file")
     (tmp / "out" / "manifests" / "copies" / ".part-x.parquet.tmp").write_bytes(b"junk")
     res = _scan(tmp)
     assert res.returncode == 1, res.stdout + res.stderr
