@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import sys
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -199,12 +200,14 @@ def _read_las(path):
     with open(path, "rb") as f:
         _check_las_block(f, size)
     try:
-        with laspy.open(str(path)) as reader:
+        with _native_stderr_held(), laspy.open(str(path)) as reader:
             _check_las_header(reader.header, size)
             las = reader.read()
     except ValueError:
         raise
-    except Exception as exc:  # laspy raises many types for corrupt files
+    except (KeyboardInterrupt, SystemExit):
+        raise
+    except BaseException as exc:  # laspy raises many types; the LAZ decoder's Rust panics are BaseExceptions
         raise ValueError(f"cannot read LAS/LAZ: {' '.join(str(exc).split())}") from None
     if len(las.points) != las.header.point_count:
         raise ValueError(f"the header declares {las.header.point_count} points, "
@@ -322,6 +325,31 @@ def write_points(cloud, points, path):
         except ValueError as exc:
             raise InputError(f"{path}: {exc}") from None
     return path
+
+
+class _native_stderr_held:
+    """Hold what native code (the LAZ decoder's panic hook) writes to fd 2; replay it only on success.
+
+    A corrupt file then ends as our one-line error, not a native panic report.
+    """
+
+    def __enter__(self):
+        sys.stderr.flush()
+        self.saved = os.dup(2)
+        self.buffer = tempfile.TemporaryFile()
+        os.dup2(self.buffer.fileno(), 2)
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        os.dup2(self.saved, 2)
+        os.close(self.saved)
+        if exc_type is None:
+            self.buffer.seek(0)
+            text = self.buffer.read()
+            if text:
+                os.write(2, text)
+        self.buffer.close()
+        return False
 
 
 def _check_las_writable(header):
