@@ -54,7 +54,8 @@ def check_asset(suspect_path, original_path, rows, materials, store, detect_para
     ----------
     suspect_path, original_path : str or Path
     rows : list of dict
-        Issued ledger rows of the asset (status ok), any generations.
+        Issued ledger rows of the asset (status ok), any generations; only
+        those issued from the original's present bytes can be checked.
     materials : dict key_id -> bytes
         Derived key material of the key ids the caller holds.
     store : str or Path
@@ -76,10 +77,12 @@ def check_asset(suspect_path, original_path, rows, materials, store, detect_para
     """
     suspect = read_points(suspect_path).points
     original = read_points(original_path).points
-    recorded_sha = rows[0]["source_sha256"]
-    if sha256_file(original_path) != recorded_sha:
+    sha = sha256_file(original_path)
+    current = [r for r in rows if r["source_sha256"] == sha]   # copies issued from these very bytes
+    if not current:
         raise InputError(f"{original_path}: the original's bytes differ from those recorded in the ledger "
-                         f"(sha256 {recorded_sha[:12]}...)")
+                         f"(sha256 {rows[0]['source_sha256'][:12]}...)")
+    rows = current
     by_ref = defaultdict(list)
     for r in rows:
         by_ref[r["reference_key"]].append(r)
