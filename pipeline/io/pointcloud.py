@@ -267,6 +267,31 @@ def _check_las_block(f, size):
                              f"in a {size}-byte file")
 
 
+_LASZIP_MAX_CHUNK = 10_000_000      # points per chunk; 0xFFFFFFFF means variable-size chunks
+
+
+def _check_laszip_vlr(header, record):
+    """The LASzip VLR's layout, chunk size and item sizes, before the decoder allocates by them."""
+    import struct
+
+    vlrs = [v for v in header.vlrs if getattr(v, "record_id", None) == 22204]
+    if not vlrs:
+        raise ValueError("compressed points without a LASzip VLR")
+    data = bytes(getattr(vlrs[0], "record_data", b""))
+    if len(data) < 34:
+        raise ValueError(f"the LASzip VLR holds {len(data)} bytes, fewer than its 34-byte head")
+    compressor, _, _, _, _, _, chunk, _, _, n_items = struct.unpack("<HHBBHIIqqH", data[:34])
+    if len(data) != 34 + 6 * n_items:
+        raise ValueError(f"the LASzip VLR declares {n_items} items but holds {len(data)} bytes")
+    if compressor not in (1, 2, 3):
+        raise ValueError(f"the LASzip VLR names compressor {compressor} (1, 2 or 3 expected)")
+    if chunk != 0xFFFFFFFF and not 0 < chunk <= _LASZIP_MAX_CHUNK:
+        raise ValueError(f"the LASzip VLR declares chunks of {chunk} points")
+    sizes = sum(struct.unpack("<HHH", data[34 + 6 * i:40 + 6 * i])[1] for i in range(n_items))
+    if sizes != record:
+        raise ValueError(f"the LASzip items hold {sizes} bytes per point, the point format {record}")
+
+
 def _check_las_header(header, size):
     """Declared point count and record size against the file's length (exact for LAS)."""
     count = int(header.point_count)
@@ -275,6 +300,7 @@ def _check_las_header(header, size):
     if header.are_points_compressed:
         if count * record > _LAZ_MAX_RATIO * size:
             raise ValueError(f"the header declares {count} points, more than a {size}-byte LAZ file can hold")
+        _check_laszip_vlr(header, record)
         return
     end = size
     if getattr(header, "number_of_evlrs", 0) and getattr(header, "start_of_first_evlr", 0):
