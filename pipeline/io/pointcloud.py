@@ -297,6 +297,10 @@ def _check_las_header(header, size):
     count = int(header.point_count)
     record = int(header.point_format.size)
     start = int(header.offset_to_point_data)
+    scales, offsets = np.asarray(header.scales, dtype=np.float64), np.asarray(header.offsets, dtype=np.float64)
+    if not (np.isfinite(scales).all() and np.isfinite(offsets).all()) or (scales == 0).any():
+        raise ValueError(f"the header's scale factors {scales.tolist()} and offsets must be finite, the scales "
+                         f"not zero")
     if header.are_points_compressed:
         if count * record > _LAZ_MAX_RATIO * size:
             raise ValueError(f"the header declares {count} points, more than a {size}-byte LAZ file can hold")
