@@ -298,9 +298,11 @@ def _check_las_header(header, size):
     record = int(header.point_format.size)
     start = int(header.offset_to_point_data)
     scales, offsets = np.asarray(header.scales, dtype=np.float64), np.asarray(header.offsets, dtype=np.float64)
-    if not (np.isfinite(scales).all() and np.isfinite(offsets).all()) or (scales == 0).any():
-        raise ValueError(f"the header's scale factors {scales.tolist()} and offsets must be finite, the scales "
-                         f"not zero")
+    with np.errstate(all="ignore"):
+        reach = np.abs(scales) * 2.0**31 + np.abs(offsets)       # the largest coordinate a record can hold
+    if not np.isfinite(reach).all() or (reach > 1e300).any() or (scales == 0).any():
+        raise ValueError(f"the header's scale factors {scales.tolist()} and offsets {offsets.tolist()} must be "
+                         f"finite, the scales not zero, and every stored coordinate finite")
     if header.are_points_compressed:
         if count * record > _LAZ_MAX_RATIO * size:
             raise ValueError(f"the header declares {count} points, more than a {size}-byte LAZ file can hold")
