@@ -195,7 +195,7 @@ def issue_bench(n_copies=1000):
     ten, rss_ten = _issue_run(work, names[:11])
     rest, rss_rest = _issue_run(work, names)
     per_copy = rest / (n_copies - 11)
-    print(f"issuing copies of the bunny (34,834 points, configs/default.yaml), serial, one process per run")
+    print("issuing copies of the bunny (34,834 points, configs/default.yaml), serial, one process per run")
     print(f"  first copy (clusters, 5 bases, write): {first:8.2f} s, peak RSS {rss_first:6.0f} MB")
     print(f"  10 more copies                       : {ten:8.2f} s, peak RSS {rss_ten:6.0f} MB")
     print(f"  {n_copies - 11} more copies                      : {rest:8.2f} s, peak RSS {rss_rest:6.0f} MB")

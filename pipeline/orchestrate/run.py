@@ -29,7 +29,7 @@ from ..config import ConfigError, watermark_params
 from ..io.basis_store import BasisStore
 from ..io.catalog import check_recipient, discover_assets
 from ..io.ledger import Ledger
-from ..io.pointcloud import InputError, sha256_file
+from ..io.pointcloud import sha256_file
 from ..io.secrets import without_secret_env
 from ..kernels import keys
 from ..watermark import params_record

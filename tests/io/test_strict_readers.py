@@ -14,7 +14,7 @@ def _vertices(n, seed=0):
 def _ply_bytes(pts, fmt="binary_little_endian", declared=None, faces=None, coord="double"):
     """A PLY whose header declares ``declared`` vertices (default: as many as given)."""
     declared = len(pts) if declared is None else declared
-    head = [f"ply", f"format {fmt} 1.0", f"element vertex {declared}",
+    head = ["ply", f"format {fmt} 1.0", f"element vertex {declared}",
             f"property {coord} x", f"property {coord} y", f"property {coord} z"]
     if faces is not None:
         head += [f"element face {len(faces)}", "property list uchar int vertex_indices"]
