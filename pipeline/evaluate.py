@@ -74,13 +74,8 @@ def prepare_bases(model_path, params, store):
 
 def load_bases(handle, n_coefficients):
     """Frame and clusters of :func:`prepare_bases`: (centre (3,), phi, specs, bases (n_c, K))."""
-    from .io.basis_store import BasisStore
-
-    store, key = BasisStore(handle[0]), handle[1]
-    centre, phi, seeds, members = store.load_meta(key)
-    specs = [ClusterSpec(i, int(s), 0, m) for i, (s, m) in enumerate(zip(seeds, members))]
-    bases = [store.load_cluster(key, i)[1][:, :n_coefficients] for i in range(len(specs))]
-    return centre, phi, specs, bases
+    ref = _stored_reference(tuple(handle), n_coefficients)
+    return ref.centre, ref.phi, ref.specs, ref.bases
 
 
 def _message_bits(params):
@@ -139,7 +134,11 @@ def _stored_reference(handle, n_coefficients):
     model_normals, spacing = store.load_array(key, "model-normals"), store.load_array(key, "model-spacing")
     grams = None
     if normals is not None and model_normals is not None:
-        grams = [resampling.normal_gram(b, model_normals[s.members]) for s, b in zip(specs, bases)]
+        # the stored Grams are those of the whole bases; cut bases need their own
+        grams = [(store.load_array(key, f"gram-{s.index}") if b.shape[1] == p[1].shape[1] else None)
+                 for s, b, p in zip(specs, bases, parts)]
+        grams = [g if g is not None else resampling.normal_gram(b, model_normals[s.members])
+                 for g, s, b in zip(grams, specs, bases)]
     return Reference(centre, phi, specs, bases, normals, [p[0] for p in parts], model_normals=model_normals,
                      spacing=spacing, grams=grams)
 
@@ -229,7 +228,8 @@ def false_positives(model_path, cache_path, params, detect_params, material, n_k
     estimated once per suspect and decoded with every wrong key.
     """
     points = read_points(model_path).points
-    centre, phi, specs, bases = load_bases(cache_path, params.n_coefficients)
+    ref = _stored_reference(tuple(cache_path), params.n_coefficients)
+    centre, phi, specs, bases = ref.centre, ref.phi, ref.specs, ref.bases
     bits = _message_bits(params)
     suspects = {"unmarked original": points}
     if marked_too:
@@ -238,7 +238,7 @@ def false_positives(model_path, cache_path, params, detect_params, material, n_k
     rows = []
     for label, suspect in suspects.items():
         estimate = estimate_differences(suspect - centre, points - centre, specs, bases, detect_params,
-                                        params.displacement)
+                                        params.displacement, **ref.detection_aids())
         for k in range(n_keys):
             wrong = keys.derive_key_material(b"evaluation-wrong-keys", f"wrong-{k}")
             res = decode(estimate, specs, wrong, params, detect_params)
