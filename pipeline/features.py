@@ -31,7 +31,7 @@ from .kernels.resampling import nearest_spacing
 
 __all__ = [
     "fpfh", "voxel_for", "match", "register_global", "GlobalResult",
-    "FeatureIndex", "build_index", "geometry_hash", "overlap_score", "dense_part", "median_spacing",
+    "FeatureIndex", "build_index", "geometry_hash", "overlap_sides", "overlap_score", "dense_part", "median_spacing",
 ]
 
 NORMAL_RADIUS = 2.0     # voxels
@@ -203,8 +203,8 @@ def _original(points, spacing, target):
     return _CACHE[key]
 
 
-def overlap_score(transform, suspect, original, spacing):
-    """Harmonic mean of fitness and coverage of any registration (as :attr:`GlobalResult.score`).
+def overlap_sides(transform, suspect, original, spacing):
+    """Fitness and coverage of any registration (as :class:`GlobalResult`).
 
     Parameters
     ----------
@@ -215,16 +215,54 @@ def overlap_score(transform, suspect, original, spacing):
 
     Returns
     -------
-    float in [0, 1]
+    fitness, coverage : float in [0, 1]
     """
     ref = _original(original, spacing, 4000)
     f, c, _ = registration.overlap(registration.apply(transform, suspect), ref.tree, ref.sample, 3.0 * spacing)
+    return f, c
+
+
+def overlap_score(transform, suspect, original, spacing):
+    """Harmonic mean of :func:`overlap_sides` (as :attr:`GlobalResult.score`)."""
+    f, c = overlap_sides(transform, suspect, original, spacing)
     return 0.0 if f + c == 0 else 2 * f * c / (f + c)
+
+
+GOOD_RESIDUAL = 1.0   # spacings: a pose a few degrees off leaves more; the search goes on
 
 
 def _good(result, good, spacing):
     return (result is not None and min(result.fitness, result.coverage) >= good
-            and result.residual < 2.0 * spacing)
+            and result.residual < GOOD_RESIDUAL * spacing)
+
+
+PERTURBATIONS = (-30.0, -15.0, 15.0, 30.0)   # degrees, about each axis through the overlap's centre
+
+
+def _multistart(sub, ref, original, transform, spacing):
+    """Best ICP result from ``transform`` and from it turned by each of :data:`PERTURBATIONS`.
+
+    Ranked by overlap score (to 2 decimals), then by residual.
+    """
+    from scipy.spatial.transform import Rotation
+
+    aligned = registration.apply(transform, sub)
+    dist, _ = ref.tree.query(aligned, distance_upper_bound=3.0 * spacing)
+    if not np.isfinite(dist).any():
+        return transform
+    centre = aligned[np.isfinite(dist)].mean(axis=0)
+    starts = [transform]
+    for axis in np.eye(3):
+        for angle in PERTURBATIONS:
+            turn = Rotation.from_rotvec(np.radians(angle) * axis).as_matrix()
+            starts.append(registration.Similarity(turn @ transform.rotation, transform.scale,
+                                                  turn @ (transform.translation - centre) + centre))
+    ranked = []
+    for start in starts:
+        fine = registration.refine_part(sub, ref.tree, original, start, spacing=spacing)
+        f, c, r = registration.overlap(registration.apply(fine, sub), ref.tree, ref.sample[:1000], 3.0 * spacing)
+        ranked.append((round(0.0 if f + c == 0 else 2 * f * c / (f + c), 2), -r, len(ranked), fine))
+    return max(ranked)[3]
 
 
 SCALES = (1.0, 2**0.5, 2**-0.5, 2.0, 0.5, 2**1.5, 2**-1.5)
@@ -330,8 +368,11 @@ def register_global(suspect, original, *, spacing, target=4000, scales=SCALES,
         identity = registration.Similarity(np.eye(3), 1.0, np.zeros(3), 0.0, float("inf"))
         best = GlobalResult(identity, 0.0, 0.0, float("inf"), float("nan"), 0, 0.0)
     else:
-        # final refinement on every suspect point
-        fine = registration.refine_part(suspect, ref.tree, original, best.transform, spacing=spacing,
+        # final refinement on every suspect point, from the best of a few
+        # rotated starts (RANSAC on a near-symmetric shape can stop a few
+        # tens of degrees off, in a basin the ICP cannot leave)
+        start = _multistart(sub, ref, original, best.transform, spacing)
+        fine = registration.refine_part(suspect, ref.tree, original, start, spacing=spacing,
                                         widths=(3.0,))
         fitness, coverage, residual = registration.overlap(
             registration.apply(fine, suspect), ref.tree, ref.sample, 3.0 * spacing)

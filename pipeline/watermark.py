@@ -579,13 +579,15 @@ def _register(suspect, reference, spacing, method):
 
         return features.register_global(suspect, reference, spacing=spacing).transform
     robust = registration.register_robust(suspect, reference, spacing=spacing)
-    if robust.fitness >= 0.8:
-        return robust
-    # a part of the asset, or the asset among clutter or junk: the principal
-    # frames mean little; let the feature-based global step compete
-    # (its ICP trims by a quantile, which outliers widen: polish it with a fixed cut first)
-    from . import features
+    from . import features   # open3d: imported only when needed
 
+    # a whole copy overlaps the original from both sides; a part of it, the
+    # asset among clutter or junk, or a fit collapsed to a tiny scale (every
+    # point "near" the original) does not, and there the principal frames
+    # mean little: let the feature-based global step compete
+    if min(features.overlap_sides(robust, suspect, reference, spacing)) >= 0.8:
+        return robust
+    # (its ICP trims by a quantile, which outliers widen: polish it with a fixed cut first)
     robust = registration.refine_part(suspect, cKDTree(reference), reference, robust, spacing=spacing,
                                       widths=(3.0,))
     found = features.register_global(suspect, reference, spacing=spacing)

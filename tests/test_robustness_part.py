@@ -4,8 +4,7 @@ Embeds with the default config's parameters (32 bits, beta 0.002, c 10,
 interleaved chips, displacement along the normals), attacks, shuffles and
 detects through ``estimate_differences`` / ``decode``, the engine's own
 path; registration is the default ``robust`` (the feature-based global step
-competes when the principal frames fit under 80 % of the suspect) unless a
-case names ``global``.  One model per case keeps each under about 30 s.
+competes unless the principal frames overlap the original from both sides).  One model per case keeps each under about 30 s.
 """
 
 from dataclasses import replace
@@ -62,28 +61,28 @@ def _attacked(copy, chain, seed=7):
     return surface.apply_chain(copy, steps, rng=seed)
 
 
-@pytest.mark.parametrize("name,chain,method", [
-    ("bunny_zipper_faceref_34834", "crop:0.5+random_similarity+noise:0.3%", "global"),
-    ("kitten_12623", "crop:0.3+random_similarity", "robust"),
-    ("nikolov_owl_12442", "random_similarity+clutter:3", "global"),
-    ("kitten_12623", "outliers:0.5", "robust"),
+@pytest.mark.parametrize("name,chain", [
+    ("bunny_zipper_faceref_34834", "crop:0.5+random_similarity+noise:0.3%"),
+    ("kitten_12623", "crop:0.3+random_similarity"),
+    ("nikolov_owl_12442", "random_similarity+clutter:3"),
+    ("kitten_12623", "outliers:0.5"),
 ])
-def test_zero_bit_errors(marked, name, chain, method):
-    errors, result = _detect(marked, name, _attacked(marked(name)[1], chain), method)
+def test_zero_bit_errors_with_the_default_registration(marked, name, chain):
+    errors, result = _detect(marked, name, _attacked(marked(name)[1], chain))
     assert errors == 0, result
     assert result["detected"] and result["p_value"] < 1e-6
 
 
-@pytest.mark.xfail(strict=True, reason="known gap (issue 13): the owl at scale 0.6 among three real scans "
-                   "(seed 21) decodes with 12 bit errors; registration lands partly off")
 def test_zero_bit_errors_inside_a_scene_of_other_scans(marked, shared_data):
+    # seed 21 once stopped RANSAC 15 degrees off on the near-symmetric owl;
+    # the rotated ICP restarts of register_global recover it
     copy = marked("nikolov_owl_12442")[1]
     rng = np.random.default_rng(21)
     others = [read_points(shared_data / "models" / f"{k}.ply").points
               for k in ("fertility_4494", "spot_cow_2930", "nikolov_blackvase_17337")]
     moved = attacks.similarity(copy, attacks.random_rotation(rng), 0.6, [2.0, -1.0, 0.5])
     scene = attacks.scene(moved, others, 3.0, rng)
-    errors, result = _detect(marked, "nikolov_owl_12442", scene[rng.permutation(len(scene))], "global")
+    errors, result = _detect(marked, "nikolov_owl_12442", scene[rng.permutation(len(scene))])
     assert errors == 0, result
     assert result["detected"]
     assert 0.2 < result["registration"]["fitness"] < 0.3   # a quarter of the scene is the asset
