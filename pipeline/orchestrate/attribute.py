@@ -127,7 +127,7 @@ def _score_group(y, ref, params, rows, material, registration):
     }
 
 
-def decide(checks, epsilon, prior_checked=0):
+def decide(checks, epsilon, prior_checked=0, planned=0):
     """Verdict of one suspect from all its checks, corrected for everything scored.
 
     Parameters
@@ -138,6 +138,9 @@ def decide(checks, epsilon, prior_checked=0):
     prior_checked : int
         Recipients this suspect was scored against by earlier scans; they
         count in the correction, so rescans never add chances to accuse.
+    planned : int
+        Recipients of every candidate this scan may check (it stops at the
+        first match); the correction counts at least these.
 
     Returns
     -------
@@ -147,7 +150,7 @@ def decide(checks, epsilon, prior_checked=0):
         threshold, best_innocent_score.
     """
     groups = [g for c in checks for g in c["groups"]]
-    n_checked = sum(g["n_recipients"] for g in groups) + int(prior_checked)
+    n_checked = max(sum(g["n_recipients"] for g in groups), int(planned)) + int(prior_checked)
     t = fingerprint.threshold(max(n_checked, 1), epsilon)
     scored = [(b["score"], g, b) for g in groups for b in g["best"]]
     accused = sorted((x for x in scored if x[0] >= t), key=lambda x: -x[0])

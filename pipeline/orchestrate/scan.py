@@ -3,10 +3,11 @@
 Per suspect: (1) a suspect that is a catalogue original's own bytes is no
 match; (2) an exact sha256 match with an issued copy attributes at once;
 (3) otherwise the top-K catalogue assets by local-descriptor votes
-(part-to-whole: crops, scenes) and the top-K by global shape descriptor are checked
-through the one attribution path (:mod:`pipeline.orchestrate.attribute`),
-each against every recipient issued under the keys held, and the verdict is
-corrected for everything scored.
+(part-to-whole: crops, scenes) and the top-K by global shape descriptor are checked,
+best-ranked first and until the first match, through the one attribution
+path (:mod:`pipeline.orchestrate.attribute`), each against every recipient
+issued under the keys held; the verdict is corrected for every recipient of
+every candidate planned.
 
 Layout of ``scan.out``: ``results/`` (one Parquet file per suspect and
 ledger/catalogue version, or ``.failed.parquet``), ``evidence/`` (a picture
@@ -193,7 +194,7 @@ def run_scan(cfg, secret, *, force=False):
     try:
         triages = {client.submit(triage, str(p), descriptors, index_path, pure=False): p for p in suspects}
         pending = as_completed(list(triages))
-        waiting, open_checks = {}, {}
+        waiting = {}
         for fut in pending:
             if fut in triages:
                 path = triages.pop(fut)
@@ -213,14 +214,14 @@ def run_scan(cfg, secret, *, force=False):
                 view = _scope(issued, prev, state, out)
                 info["prev"] = prev
                 info["candidates"] = _candidates(info, view, sc["top_k"])
+                info["planned"] = planned_recipients([view[a] for a in info["candidates"]], materials)
                 info["checks"], info["errors"] = [], []
-                subs = [client.submit(check_asset, info["path"], view[a][-1]["source_path"], view[a], materials,
-                                      store, detect_params, pure=False) for a in info["candidates"]]
-                for sub in subs:
-                    waiting[sub] = info
-                    pending.add(sub)
-                open_checks[info["path"]] = len(subs)
-                if not subs:
+                # candidates are checked best-ranked first and the search
+                # stops at the first match: the threshold counts every
+                # recipient of every candidate planned, so stopping early
+                # adds no chance to accuse
+                info["queue"] = [(a, view[a]) for a in info["candidates"]]
+                if not _submit_next(client, info, materials, store, detect_params, waiting, pending):
                     counts[_finish(out, versions, info, detect_params.epsilon, issued, store)] += 1
             else:
                 info = waiting.pop(fut)
@@ -228,8 +229,8 @@ def run_scan(cfg, secret, *, force=False):
                     info["checks"].append(fut.result())
                 else:
                     info["errors"].append(_text(fut.exception()))
-                open_checks[info["path"]] -= 1
-                if open_checks[info["path"]] == 0:
+                matched = decide(info["checks"], detect_params.epsilon, _prior(info), info["planned"])["accused"]
+                if matched or not _submit_next(client, info, materials, store, detect_params, waiting, pending):
                     verdict = _finish(out, versions, info, detect_params.epsilon, issued, store)
                     counts[verdict] += 1
                     print(f"[pointmark] scan: {info['path']}: {verdict}", file=sys.stderr, flush=True)
@@ -244,6 +245,40 @@ def run_scan(cfg, secret, *, force=False):
     if counts["failed"]:
         return 3
     return 1 if counts["match"] else 0
+
+
+def planned_recipients(candidate_rows, materials):
+    """Recipients a suspect may be scored against: every (reference, key, generation, recipient) held.
+
+    Parameters
+    ----------
+    candidate_rows : list of list of dict
+        Issued ledger rows of each candidate asset.
+    materials : dict key_id -> bytes
+
+    Returns
+    -------
+    int
+        An upper bound on what :func:`check_asset` scores for these candidates.
+    """
+    return sum(len({(r["reference_key"], r["key_id"], r["generation_id"], r["recipient"])
+                    for r in rows if r["key_id"] in materials}) for rows in candidate_rows)
+
+
+def _prior(info):
+    return (info.get("prev") or {}).get("n_checked") or 0
+
+
+def _submit_next(client, info, materials, store, detect_params, waiting, pending):
+    """Submit the suspect's next candidate check; False when none is left."""
+    if not info["queue"]:
+        return False
+    asset, rows = info["queue"].pop(0)
+    fut = client.submit(check_asset, info["path"], rows[-1]["source_path"], rows, materials, store, detect_params,
+                        pure=False)
+    waiting[fut] = info
+    pending.add(fut)
+    return True
 
 
 def _text(exc):
@@ -282,7 +317,7 @@ def _finish(out, versions, info, epsilon, issued, store):
         _record(out, versions, info, "failed", error="; ".join(info["errors"]))
         return "failed"
     prev = info.get("prev")
-    result = decide(info["checks"], epsilon, prior_checked=(prev or {}).get("n_checked") or 0)
+    result = decide(info["checks"], epsilon, _prior(info), info.get("planned", 0))
     if prev is not None and result["verdict"] != "match" and prev["verdict"] in ("match", "inconclusive"):
         # what was found before stands; the new copies and assets did not change it
         carried = {k: prev[k] for k in SCAN_SCHEMA.names if k in prev and k not in ("scanned_at", "ledger_version",
