@@ -1,4 +1,4 @@
-"""pointmark benchmarks: ``make bench`` (or ``python bench/run.py [spectral] [catalog] [scan] [fingerprint] [issue]``).
+"""pointmark benchmarks: ``make bench`` (or ``python bench/run.py [spectral] [catalog] [scan] [fingerprint] [issue] [leaks]``).
 
 Every figure is a ratio of two timings taken side by side in this one run,
 since shared machines are noisy; each timing is the best of a few repeats.
@@ -203,8 +203,17 @@ def issue_bench(n_copies=1000):
     shutil.rmtree(work / "marked", ignore_errors=True)
 
 
+def leaks_bench():
+    """Leak scan over real scans and procedural shapes (issue 13; about an hour): see bench/leaks.py."""
+    sys.path.insert(0, str(ROOT / "bench"))
+    from leaks import leaks_bench as run
+
+    run()
+
+
 BENCHES = {"spectral": spectral_bench, "catalog": catalog_bench, "scan": scan_bench,
-           "fingerprint": fingerprint_bench, "issue": issue_bench}
+           "fingerprint": fingerprint_bench, "issue": issue_bench, "leaks": leaks_bench}
+DEFAULT = ["spectral", "catalog", "scan", "fingerprint", "issue"]   # "leaks" runs when named
 
 
 def main(argv):
@@ -214,7 +223,7 @@ def main(argv):
     pinned = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
     if any(os.environ.get(k) != v for k, v in pinned.items()):
         os.execve(sys.executable, [sys.executable, __file__, *argv], {**os.environ, **pinned})
-    names = argv or list(BENCHES)
+    names = argv or DEFAULT
     for name in names:
         BENCHES[name]()
         print()

@@ -1,0 +1,265 @@
+"""Leak-scan benchmark (issue 13): real and procedural assets, attacked leaks, negatives, catalogue growth.
+
+``python bench/run.py leaks`` (about an hour on 2 cores; not part of the
+default ``make bench``).  Writes ``bench/results/leaks/summary.md``.
+
+Catalogue: every real scan of ``../shared/data/models`` except the 110,000-point
+Autzen LiDAR tile (large scenes are issue 15), linked, never copied, plus
+procedural shapes, among them near-identical pairs (a shape and the same
+shape bent by 1 % of its size; the bunny's four scans are near-identical
+too).  Five recipients per asset, ``cluster_size`` 2,400 (the smallest scans
+have 1,889 to 4,494 points).
+
+Suspects: every asset's copy to one recipient (in turn) under each of the
+seven attacks below, shuffled.  Negatives: unmarked originals (rotated,
+rescaled), copies issued under another key, and unrelated procedural shapes.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = Path(os.environ.get("POINTMARK_TEST_DATA", ROOT.parent / "shared" / "data"))
+
+ATTACKS = ["crop:0.5+random_similarity+noise:0.3%", "crop:0.3+random_similarity", "random_similarity+clutter:3",
+           "outliers:0.5", "noise:0.5%", "resample:half", "removal:0.1"]
+RECIPIENTS = [f"r{i}" for i in range(1, 6)]
+SECRET = b"leak-benchmark-secret-0123456789"
+OTHER_SECRET = b"leak-benchmark-other-key-987654321"
+
+
+def _bend(points, amount=0.01):
+    """The same shape bent by ``amount`` of its largest side (a near-identical asset)."""
+    size = float((points.max(axis=0) - points.min(axis=0)).max())
+    x = (points[:, 0] - points[:, 0].min()) / size
+    out = points.copy()
+    out[:, 1] += amount * size * np.sin(np.pi * x)
+    return out
+
+
+def _procedural(n_shapes, seed0, n_points=6000):
+    from pipeline.demo import SHAPES, procedural_shape
+
+    kinds = sorted(SHAPES)
+    return {f"{kinds[i % len(kinds)]}-{seed0 + i:03d}": procedural_shape(kinds[i % len(kinds)], n_points,
+                                                                        seed=seed0 + i) * 20
+            for i in range(n_shapes)}
+
+
+def build_catalogue(work):
+    """Assets folder (links to the real scans, procedural PLY files) and its catalogue file."""
+    from pipeline.io.catalog import catalogue_record, discover_assets, write_catalogue
+    from pipeline.io.pointcloud import write_array
+
+    assets = work / "assets"
+    assets.mkdir(parents=True, exist_ok=True)
+    for path in sorted((DATA / "models").glob("*.ply")):
+        if path.stem == "lidar_autzen_trim_110000":
+            continue
+        link = assets / path.name
+        if not link.exists():
+            link.symlink_to(path.resolve())
+    shapes = _procedural(14, 0)
+    for name in sorted(shapes)[:4]:
+        shapes[f"{name}-bent"] = _bend(shapes[name])
+    for name, points in shapes.items():
+        write_array(assets, name, points, "ply")
+    rows = [catalogue_record(a) for a in discover_assets(assets, default_recipients=RECIPIENTS)]
+    bad = [r for r in rows if r["status"] != "ok"]
+    if bad:
+        raise SystemExit(f"unusable assets: {[(r['asset_key'], r['error']) for r in bad]}")
+    write_catalogue(rows, work / "catalog.parquet")
+    return rows
+
+
+def _config(work, manifests, out, key_id):
+    from pipeline import config
+
+    return config.load_config(None, [
+        f"catalog.source={work / 'catalog.parquet'}", f"recipients=[{', '.join(RECIPIENTS)}]", f"key.id={key_id}",
+        f"output.dir={out}", f"output.manifests={manifests}", f"output.bases={work / 'bases'}", "cluster_size=2400",
+        f"scan.suspects={work / 'suspects'}", f"scan.catalogue={work / 'catalog.parquet'}",
+        f"scan.manifests={work / 'manifests'}", f"scan.out={work / 'scan'}", "scan.top_k=3",
+        "dask.progress=none", "dask.n_workers=2"])
+
+
+def _chain(text, n):
+    from pipeline import surface
+
+    steps = []
+    for part in text.split("+"):
+        if part == "resample:half":
+            steps.append(("resample", float(max(n // 2, 1000))))
+        else:
+            steps.append(surface.parse_attack(part))
+    return steps + [("shuffle", None)]
+
+
+def write_suspects(work, rows, other_rows):
+    """Attacked leaks and negatives; returns {suspect name: (kind, asset, recipient, attack)}."""
+    from pipeline import surface
+    from pipeline.io.pointcloud import read_points, write_array
+
+    rng = np.random.default_rng(2026)
+    folder = work / "suspects"
+    truth = {}
+    issued = {(r["asset_key"], r["recipient"]): r for r in rows if r["status"] == "ok"}
+    assets = sorted({a for a, _ in issued})
+    k = 0
+    for a_i, asset in enumerate(assets):
+        for t_i, attack in enumerate(ATTACKS):
+            recipient = RECIPIENTS[(a_i + t_i) % len(RECIPIENTS)]
+            points = read_points(issued[(asset, recipient)]["output_path"]).points
+            name = f"leak-{k:03d}"
+            write_array(folder, name, surface.apply_chain(points, _chain(attack, len(points)), rng), "ply")
+            truth[name] = ("leak", asset, recipient, attack)
+            k += 1
+    originals = {r["asset_key"]: r["source_path"] for r in rows if r["status"] == "ok"}
+    for i, asset in enumerate(assets):
+        points = read_points(originals[asset]).points
+        write_array(folder, f"unmarked-{i:03d}", surface.apply_chain(
+            points, [("random_similarity", None), ("shuffle", None)], rng), "ply")
+        truth[f"unmarked-{i:03d}"] = ("unmarked original", asset, None, "random_similarity")
+    for i, r in enumerate(other_rows):
+        points = read_points(r["output_path"]).points
+        write_array(folder, f"otherkey-{i:03d}", surface.apply_chain(
+            points, [("random_similarity", None), ("shuffle", None)], rng), "ply")
+        truth[f"otherkey-{i:03d}"] = ("copy under another key", r["asset_key"], None, "random_similarity")
+    for i, (name, points) in enumerate(sorted(_procedural(20, 500).items())):
+        write_array(folder, f"unrelated-{i:03d}", surface.apply_chain(
+            points, [("random_similarity", None), ("shuffle", None)], rng), "ply")
+        truth[f"unrelated-{i:03d}"] = ("unrelated shape", None, None, "random_similarity")
+    (work / "truth.json").write_text(json.dumps(truth, indent=1))
+    return truth
+
+
+def growth(work, rows, n_large=300, n_queries=20):
+    """Candidate-search time per suspect with the catalogue's index and with one of ``n_large`` assets."""
+    from pipeline.features import build_index
+    from pipeline.io.pointcloud import read_points
+
+    clouds = {r["asset_key"]: read_points(r["path"]).points for r in rows if r["status"] == "ok"}
+    extra = _procedural(n_large - len(clouds), 1000)
+    queries = sorted((work / "suspects").glob("leak-*.ply"))[:: max(1, 217 // n_queries)][:n_queries]
+    suspects = [read_points(q).points for q in queries]
+    out = {}
+    for label, cat in (("catalogue", clouds), ("grown", {**clouds, **extra})):
+        t0 = time.perf_counter()
+        index = build_index(cat)
+        built = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        for s in suspects:
+            index.rank(s, top_k=3)
+        out[label] = {"assets": len(cat), "build_seconds": built,
+                      "rank_seconds_per_suspect": (time.perf_counter() - t0) / len(suspects)}
+    return out
+
+
+def leaks_bench():
+    from pipeline.orchestrate.progress import Progress
+    from pipeline.orchestrate.run import plan_job, run_job
+    from pipeline.orchestrate.scan import read_scan, run_scan
+
+    work = ROOT / "bench" / "results" / "leaks"
+    if not DATA.is_dir():
+        raise SystemExit(f"{DATA}: the shared data folder is missing (set POINTMARK_TEST_DATA)")
+    for sub in ("scan", "suspects"):
+        shutil.rmtree(work / sub, ignore_errors=True)
+    t0 = time.perf_counter()
+    catalogue = build_catalogue(work)
+    cfg = _config(work, work / "manifests", work / "marked", "bench")
+    job = plan_job(cfg, SECRET)
+    run_job(job, cfg, progress=Progress())
+    rows = job.ledger.rows()
+    # copies of ten assets under another key, in a ledger the scan never sees
+    other_cfg = _config(work, work / "other-manifests", work / "other-marked", "other")
+    other_cfg["recipients"] = ["x1"]
+    other_job = plan_job(other_cfg, OTHER_SECRET)
+    run_job(other_job, other_cfg, progress=Progress())
+    other_rows = [r for r in other_job.ledger.rows() if r["status"] == "ok"][::3][:10]
+    t_issue = time.perf_counter() - t0
+    truth = write_suspects(work, rows, other_rows)
+
+    t0 = time.perf_counter()
+    status = run_scan(cfg, SECRET, force=True)
+    wall = time.perf_counter() - t0
+    results = {Path(r["suspect_path"]).stem: r for r in sorted(read_scan(work / "scan"), key=lambda r: r["scanned_at"])}
+    summary = _summarise(truth, results, wall, status, len(catalogue), t_issue)
+    summary["growth"] = growth(work, catalogue)
+    _write(work, summary)
+
+
+def _summarise(truth, results, wall, status, n_assets, t_issue):
+    per_attack = {}
+    negatives = Counter()
+    neg_checks = neg_recipients = false_matches = 0
+    failed = []
+    for name, (kind, asset, recipient, attack) in truth.items():
+        r = results.get(name)
+        if r is None or r["verdict"] == "failed":
+            failed.append((name, None if r is None else r.get("error")))
+            continue
+        if kind == "leak":
+            cell = per_attack.setdefault(attack, Counter())
+            cell["suspects"] += 1
+            exact = r["verdict"] == "match" and not r.get("candidates")
+            cell["candidate"] += bool(exact or asset in (r.get("candidates") or []))
+            cell["right"] += r["verdict"] == "match" and (r["candidate_asset"], r["recipient"]) == (asset, recipient)
+            cell["wrong"] += r["verdict"] == "match" and (r["candidate_asset"], r["recipient"]) != (asset, recipient)
+            cell["inconclusive"] += r["verdict"] == "inconclusive"
+        else:
+            negatives[kind] += 1
+            false_matches += r["verdict"] == "match"
+            negatives[f"{kind}: inconclusive"] += r["verdict"] == "inconclusive"
+            neg_checks += len(r.get("candidates") or [])
+            neg_recipients += r.get("n_checked") or 0
+    stages = Counter()
+    for r in results.values():
+        stages["candidates"] += r.get("seconds_candidates") or 0
+        stages["registration"] += r.get("seconds_registration") or 0
+        stages["detection"] += r.get("seconds_detection") or 0
+    return {"assets": n_assets, "suspects": len(truth), "wall_seconds": wall, "issue_seconds": t_issue,
+            "exit_status": status, "per_attack": {k: dict(v) for k, v in per_attack.items()},
+            "negatives": dict(negatives), "negative_asset_checks": neg_checks,
+            "negative_recipient_checks": neg_recipients, "false_matches": false_matches,
+            "failed": failed, "stage_seconds": dict(stages)}
+
+
+def _write(work, s):
+    lines = [f"# Leak-scan benchmark: {s['suspects']} suspects, {s['assets']} assets x {len(RECIPIENTS)} recipients",
+             "", f"Scan wall time {s['wall_seconds']:.0f} s on 2 workers "
+             f"({s['wall_seconds'] / s['suspects']:.1f} s per suspect); exit status {s['exit_status']}.", "",
+             "| attack | leaks | right asset among candidates | right recipient named | wrong recipient named "
+             "| inconclusive |", "|---|---|---|---|---|---|"]
+    tot = Counter()
+    for attack, c in s["per_attack"].items():
+        tot.update(c)
+        lines.append(f"| {attack} | {c['suspects']} | {c['candidate']} | {c['right']} | {c['wrong']} "
+                     f"| {c['inconclusive']} |")
+    lines.append(f"| all | {tot['suspects']} | {tot['candidate']} ({100 * tot['candidate'] / max(tot['suspects'], 1):.1f} %) "
+                 f"| {tot['right']} ({100 * tot['right'] / max(tot['suspects'], 1):.1f} %) | {tot['wrong']} "
+                 f"| {tot['inconclusive']} |")
+    lines += ["", f"Negatives: {s['negatives']}; {s['negative_asset_checks']} suspect-asset checks, "
+              f"{s['negative_recipient_checks']} recipient scores; false matches: {s['false_matches']}.",
+              f"Failed suspects: {len(s['failed'])} {s['failed'][:5]}", ""]
+    total = sum(s["stage_seconds"].values()) or 1.0
+    lines.append("Worker seconds by stage: " + ", ".join(
+        f"{k} {v:.0f} s ({100 * v / total:.0f} %)" for k, v in s["stage_seconds"].items()))
+    g = s["growth"]
+    lines += ["", "Candidate search as the catalogue grows (index build once per catalogue version; rank per suspect):"]
+    for label, v in g.items():
+        lines.append(f"- {v['assets']} assets: build {v['build_seconds']:.1f} s, rank "
+                     f"{v['rank_seconds_per_suspect']:.2f} s per suspect")
+    text = "\n".join(lines) + "\n"
+    (work / "summary.md").write_text(text)
+    (work / "summary.json").write_text(json.dumps(s, indent=1, default=str))
+    print(text)

@@ -1,0 +1,37 @@
+"""The verdict of a suspect: the correction counts what was planned, not only what was scored."""
+
+import numpy as np
+
+from pipeline.kernels import fingerprint
+from pipeline.orchestrate.attribute import decide
+from pipeline.orchestrate.scan import planned_recipients
+
+
+def _check(scores, asset="a"):
+    return {"groups": [{"asset_key": asset, "key_id": "k", "reference_key": "ref", "generation": 1,
+                        "n_recipients": len(scores), "presence_p": 1.0, "registration": {},
+                        "best": [{"recipient": f"r{i}", "score": float(s), "copies": [(1, "x")],
+                                  "cluster_scores": None} for i, s in enumerate(scores)]}]}
+
+
+def test_a_scan_that_stops_at_the_first_match_counts_every_planned_recipient():
+    checks = [_check([6.5, 0.3, -0.5])]
+    alone = decide(checks, 1e-6)
+    planned = decide(checks, 1e-6, planned=10_000)
+    assert alone["n_checked"] == 3 and planned["n_checked"] == 10_000
+    assert planned["threshold"] == fingerprint.threshold(10_000, 1e-6) > alone["threshold"]
+    # 6.5 clears the threshold for 3 recipients (5.46) but not for 10,000 (6.79)
+    assert alone["verdict"] == "match" and planned["verdict"] == "no match"
+    assert np.isclose(planned["p_value"], min(1.0, 10_000 * np.exp(-6.5 ** 2 / 2)))
+
+
+def test_earlier_scans_add_to_the_planned_count():
+    assert decide([_check([1.0])], 1e-6, prior_checked=50, planned=20)["n_checked"] == 70
+
+
+def test_planned_recipients_counts_held_keys_once_per_reference_generation_and_recipient():
+    rows = [{"reference_key": "A", "key_id": "k1", "generation_id": "g1", "recipient": r} for r in ("x", "y")]
+    rows += [{"reference_key": "A", "key_id": "k1", "generation_id": "g1", "recipient": "x"}]     # a rerun row
+    rows += [{"reference_key": "A", "key_id": "k1", "generation_id": "g2", "recipient": "x"}]     # new generation
+    rows += [{"reference_key": "A", "key_id": "k2", "generation_id": "g1", "recipient": "z"}]     # key not held
+    assert planned_recipients([rows, rows[:1]], {"k1": b"m"}) == 3 + 1
