@@ -31,7 +31,7 @@ from .kernels.resampling import nearest_spacing
 
 __all__ = [
     "fpfh", "voxel_for", "match", "register_global", "GlobalResult",
-    "FeatureIndex", "build_index", "geometry_hash", "overlap_sides", "overlap_score", "dense_part", "median_spacing",
+    "FeatureIndex", "build_index", "geometry_hash", "overlap_sides", "overlap_score", "overlap_rank", "dense_part", "median_spacing",
 ]
 
 NORMAL_RADIUS = 2.0     # voxels
@@ -236,6 +236,7 @@ def _good(result, good, spacing):
             and result.residual < GOOD_RESIDUAL * spacing)
 
 
+FINAL_ITERATIONS = 300    # most ICP steps of the final refinement (it stops once converged)
 PERTURBATIONS = (-30.0, -15.0, 15.0, 30.0)   # degrees, about each axis through the overlap's centre
 
 
@@ -259,10 +260,22 @@ def _multistart(sub, ref, original, transform, spacing):
                                                   turn @ (transform.translation - centre) + centre))
     ranked = []
     for start in starts:
-        fine = registration.refine_part(sub, ref.tree, original, start, spacing=spacing)
+        fine = registration.refine_part(sub, ref.tree, original, start, spacing=spacing, iterations=100)
         f, c, r = registration.overlap(registration.apply(fine, sub), ref.tree, ref.sample[:1000], 3.0 * spacing)
         ranked.append((round(0.0 if f + c == 0 else 2 * f * c / (f + c), 2), -r, len(ranked), fine))
     return max(ranked)[3]
+
+
+def overlap_rank(transform, suspect, original, spacing):
+    """Sort key of registrations: overlap score (to 2 decimals), then the smaller residual.
+
+    Returns
+    -------
+    (float, float)
+    """
+    ref = _original(original, spacing, 4000)
+    f, c, r = registration.overlap(registration.apply(transform, suspect), ref.tree, ref.sample, 3.0 * spacing)
+    return round(0.0 if f + c == 0 else 2 * f * c / (f + c), 2), -r
 
 
 SCALES = (1.0, 2**0.5, 2**-0.5, 2.0, 0.5, 2**1.5, 2**-1.5)
@@ -372,8 +385,10 @@ def register_global(suspect, original, *, spacing, target=4000, scales=SCALES,
         # rotated starts (RANSAC on a near-symmetric shape can stop a few
         # tens of degrees off, in a basin the ICP cannot leave)
         start = _multistart(sub, ref, original, best.transform, spacing)
+        # point-to-point ICP slides slowly along a smooth surface: let it run
+        # to convergence (a few tenths of a second)
         fine = registration.refine_part(suspect, ref.tree, original, start, spacing=spacing,
-                                        widths=(3.0,))
+                                        widths=(3.0,), iterations=FINAL_ITERATIONS)
         fitness, coverage, residual = registration.overlap(
             registration.apply(fine, suspect), ref.tree, ref.sample, 3.0 * spacing)
         best.transform = registration.Similarity(fine.rotation, fine.scale, fine.translation, fitness, residual)

@@ -8,6 +8,8 @@ produce the same bytes.
 
 from __future__ import annotations
 
+import functools
+
 import time
 from dataclasses import asdict, dataclass, field, replace
 
@@ -589,9 +591,10 @@ def _register(suspect, reference, spacing, method):
         return robust
     # (its ICP trims by a quantile, which outliers widen: polish it with a fixed cut first)
     robust = registration.refine_part(suspect, cKDTree(reference), reference, robust, spacing=spacing,
-                                      widths=(3.0,))
-    found = features.register_global(suspect, reference, spacing=spacing)
-    return found.transform if found.score > features.overlap_score(robust, suspect, reference, spacing) else robust
+                                      widths=(3.0,), iterations=features.FINAL_ITERATIONS)
+    found = features.register_global(suspect, reference, spacing=spacing).transform
+    rank = functools.partial(features.overlap_rank, suspect=suspect, original=reference, spacing=spacing)
+    return found if rank(found) > rank(robust) else robust
 
 
 def _coefficient_differences(aligned, reference, specs, bases, detect_params, displacement, normals=None,
