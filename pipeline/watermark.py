@@ -503,6 +503,9 @@ def detect_with_bases(suspect, reference, specs, bases, material, params, detect
     return decode(estimate, specs, material, params, detect_params)
 
 
+REGISTERED = (0.05, 0.1)   # least fitness (share of the suspect on the original) and coverage of a registration
+
+
 def estimate_differences(suspect, reference, specs, bases, detect_params, displacement, *, normals=None,
                          grams=None, spacing=None):
     """Register the suspect and estimate every cluster's r-hat - r (independent of the key).
@@ -515,11 +518,17 @@ def estimate_differences(suspect, reference, specs, bases, detect_params, displa
     Returns
     -------
     dict with ``deltas`` (list of (K, 3) float), ``support`` and ``registration``
+        (method, scale, fitness and coverage within 3 spacings, residual,
+        rotation, translation, and ``failed`` when fitness or coverage is
+        under :data:`REGISTERED`)
     """
     t0 = time.perf_counter()
     spacing = resampling.nearest_spacing(reference) if spacing is None else spacing
+    cut = 3.0 * float(np.median(spacing))
     transform = _register(suspect, reference, float(np.median(spacing)), detect_params.registration)
     aligned = registration.apply(transform, suspect)
+    fitness, coverage, _ = registration.overlap(aligned, cKDTree(reference),
+                                                reference[:: max(1, len(reference) // 4000)], cut)
     t1 = time.perf_counter()
     deltas, support = _coefficient_differences(aligned, reference, specs, bases, detect_params, displacement,
                                                normals, grams, spacing)
@@ -531,7 +540,10 @@ def estimate_differences(suspect, reference, specs, bases, detect_params, displa
         "registration": {
             "method": detect_params.registration,
             "scale": float(transform.scale),
-            "fitness": float(transform.fitness),
+            "fitness": float(fitness),
+            "coverage": float(coverage),
+            # too little of either cloud lies on the other: nothing was registered
+            "failed": bool(fitness < REGISTERED[0] or coverage < REGISTERED[1]),
             "residual_rel_diag": float(transform.residual) / _diag(reference),
             "rotation": np.asarray(transform.rotation, dtype=np.float64).tolist(),
             "translation": np.asarray(transform.translation, dtype=np.float64).tolist(),

@@ -114,7 +114,9 @@ def write_summary(rows, path, epsilon):
              "asset, key and generation the suspect was checked against. The p-value is that bound for the "
              "score found (smaller is surer); the margin is how far the score stands above the best score of "
              "anyone not named. 'Inconclusive' means a fingerprint is present but no one clears the threshold; "
-             "'failed' means the check could not be done (it is retried by the next scan).", "",
+             "'failed' means the check could not be done (it is retried by the next scan). 'Registration failed' "
+             "means the suspect could not be laid onto any candidate asset (under 5 % of it on the asset, or "
+             "under 10 % of the asset covered), so its 'no match' says nothing about those assets.", "",
              "| suspect | verdict | asset | recipient (issued copy) | score / threshold | p-value | margin | "
              "recipients checked | evidence |", "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
@@ -126,6 +128,8 @@ def write_summary(rows, path, epsilon):
         margin = f"{r['margin']:.1f}" if r.get("margin") is not None else "-"
         picture = f"[picture](evidence/{Path(r['evidence_path']).name})" if r.get("evidence_path") else "-"
         note = f" ({r['error']})" if r.get("error") else ""
+        if r.get("registration_status") == "registration failed" and r["verdict"] != "match":
+            note += " (registration failed on every candidate: the suspect may hold the asset in a form not reached)"
         lines.append(f"| {Path(r['suspect_path']).name} | {r['verdict']}{note} | {r.get('candidate_asset') or '-'} | "
                      f"{who} | {score} | {p} | {margin} | {r.get('n_checked') or '-'} | {picture} |")
     atomic_write_bytes(path, ("\n".join(lines) + "\n").encode())

@@ -72,6 +72,8 @@ SCAN_SCHEMA = pa.schema([
     ("registration_fitness", pa.float64()),
     ("registration_residual_rel_diag", pa.float64()),
     ("registration_scale", pa.float64()),
+    ("registration_coverage", pa.float64()),
+    ("registration_status", pa.string()),
     ("evidence_path", pa.string()),
     ("ledger_version", pa.string()),
     ("catalogue_version", pa.string()),
@@ -333,7 +335,11 @@ def _finish(out, versions, info, epsilon, issued, store):
     if top is not None and top.get("cluster_scores") is not None:
         evidence = out / "evidence" / f"{info['sha256'][:32]}-{versions[0]}-{versions[1]}.png"
         render_evidence(info["path"], issued[top["asset_key"]][-1]["source_path"], top, store, evidence)
-    reg = top["registration"] if top else next((g["registration"] for c in info["checks"] for g in c["groups"]), {})
+    regs = [g["registration"] for c in info["checks"] for g in c["groups"]]
+    # the accused's registration, else the best one (most overlap) of any candidate
+    reg = top["registration"] if top else max(regs, key=lambda r: min(r.get("fitness", 0), r.get("coverage", 0)),
+                                              default={})
+    status = None if not regs else ("registration failed" if all(r.get("failed") for r in regs) else "registered")
     seconds = [c["seconds"] for c in info["checks"]]
     _record(out, versions, info, result["verdict"],
             candidate_asset=top["asset_key"] if top else None, recipient=top["recipient"] if top else None,
@@ -343,7 +349,8 @@ def _finish(out, versions, info, epsilon, issued, store):
             score=result["best_score"], p_value=result["p_value"], threshold=result["threshold"],
             margin=top["margin"] if top else None, n_checked=result["n_checked"],
             registration_fitness=reg.get("fitness"), registration_residual_rel_diag=reg.get("residual_rel_diag"),
-            registration_scale=reg.get("scale"),
+            registration_scale=reg.get("scale"), registration_coverage=reg.get("coverage"),
+            registration_status=status,
             seconds_registration=sum(s["registration"] for s in seconds),
             seconds_detection=sum(s["estimate"] + s["scoring"] for s in seconds),
             evidence_path=None if evidence is None else str(evidence))

@@ -35,3 +35,21 @@ def test_planned_recipients_counts_held_keys_once_per_reference_generation_and_r
     rows += [{"reference_key": "A", "key_id": "k1", "generation_id": "g2", "recipient": "x"}]     # new generation
     rows += [{"reference_key": "A", "key_id": "k2", "generation_id": "g1", "recipient": "z"}]     # key not held
     assert planned_recipients([rows, rows[:1]], {"k1": b"m"}) == 3 + 1
+
+
+def test_a_suspect_that_lands_nowhere_on_the_original_is_a_failed_registration():
+    from dataclasses import replace
+
+    from pipeline import config
+    from pipeline.demo import procedural_shape
+    from pipeline.watermark import cluster_basis, estimate_differences, plan_clusters
+
+    points = procedural_shape("blob", 3000, seed=3)
+    params = replace(config.watermark_params(config.load_config(None)), n_clusters=1, cluster_size=1000)
+    specs = plan_clusters(points, params)
+    bases = [cluster_basis(points[s.members], params)[1] for s in specs]
+    dparams = replace(config.detect_params(config.load_config(None)), registration="none")
+    here = estimate_differences(points[::-1], points, specs, bases, dparams, params.displacement)["registration"]
+    away = estimate_differences(points + 10.0, points, specs, bases, dparams, params.displacement)["registration"]
+    assert not here["failed"] and here["fitness"] > 0.99 and here["coverage"] > 0.99
+    assert away["failed"] and away["fitness"] == 0.0 and away["coverage"] == 0.0
