@@ -275,7 +275,7 @@ def cmd_attack(args):
 
 
 def cmd_evaluate(args):
-    from .evaluate import run_evaluation
+    from .orchestrate.evaluate import run_evaluation
 
     cfg = config_mod.load_config(args.config_file, args.sets)
     secret = _secret(args, cfg)

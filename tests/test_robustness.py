@@ -1,6 +1,6 @@
 """Robustness beyond the paper (issue 7) on three real scans.
 
-Each case runs one trial of the evaluation (``pipeline.evaluate.trial``, the
+Each case runs one trial of the evaluation (``pipeline.orchestrate.evaluate.trial``, the
 code behind the report's rows): embed with the paper's defaults (beta 0.002,
 c 10, 32 bits) and the default config's beyond-the-paper choices (interleaved
 chips, displacement along the normals), attack, shuffle, detect with the
@@ -13,7 +13,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from pipeline import config, evaluate
+from pipeline import config
+from pipeline.orchestrate import evaluate
 from pipeline.io.pointcloud import read_points
 from pipeline.kernels import keys
 from pipeline.watermark import decode, estimate_differences

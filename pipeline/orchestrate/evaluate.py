@@ -19,11 +19,11 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from . import config as config_mod
-from .io.pointcloud import atomic_write_bytes, read_points
-from .kernels import fingerprint, keys, modulation
-from .surface import apply_chain, parse_attack
-from .watermark import (ClusterSpec, Reference, decode, distortion, embed_with_bases, estimate_differences,
+from .. import config as config_mod
+from ..io.pointcloud import atomic_write_bytes, read_points
+from ..kernels import fingerprint, keys, modulation
+from ..surface import apply_chain, parse_attack
+from ..watermark import (ClusterSpec, Reference, decode, distortion, embed_with_bases, estimate_differences,
                         fingerprint_displacement, fingerprint_length, fingerprint_observation)
 
 __all__ = ["run_evaluation", "parse_chain", "trial", "prepare_bases", "load_bases", "fingerprint_trial",
@@ -63,9 +63,9 @@ def _basis_params(params, n_coefficients):
 
 def prepare_bases(model_path, params, store):
     """Clusters and bases of a model in the basis store; returns the handle (store, key)."""
-    from .io.basis_store import BasisStore
-    from .io.pointcloud import sha256_file
-    from .orchestrate.reference import load_reference
+    from ..io.basis_store import BasisStore
+    from ..io.pointcloud import sha256_file
+    from .reference import load_reference
 
     key = BasisStore(store).key(sha256_file(model_path), params)
     load_reference(read_points(model_path).points, params, store, key, detection=True)
@@ -122,8 +122,8 @@ def _stored_reference(handle, n_coefficients):
 
     Cached per worker process: the trials of one model share it.
     """
-    from .io.basis_store import BasisStore
-    from .kernels import resampling
+    from ..io.basis_store import BasisStore
+    from ..kernels import resampling
 
     store, key = BasisStore(handle[0]), handle[1]
     centre, phi, seeds, members = store.load_meta(key)
@@ -287,8 +287,8 @@ def run_evaluation(cfg, secret):
     """``pointmark evaluate``: run the grid, write results.parquet, plots and summary.md."""
     from distributed import as_completed
 
-    from .orchestrate.run import start_client
-    from .report import write_report
+    from .run import start_client
+    from ..report import write_report
 
     ev = cfg["evaluate"]
     out = Path(ev["out"])

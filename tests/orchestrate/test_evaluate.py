@@ -4,7 +4,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from pipeline import config
-from pipeline.evaluate import run_evaluation
+from pipeline.orchestrate.evaluate import run_evaluation
 from tests.conftest import ROOT
 
 pytestmark = pytest.mark.slow

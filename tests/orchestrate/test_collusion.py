@@ -4,7 +4,8 @@ from dataclasses import replace
 
 import pytest
 
-from pipeline import config, evaluate
+from pipeline import config
+from pipeline.orchestrate import evaluate
 from pipeline.kernels import keys
 from tests.conftest import ROOT
 
