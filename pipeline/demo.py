@@ -173,7 +173,7 @@ def run_demo(folder, config_path):
 # three leaks found in the wild: (asset, recipient, attack chain, what happened to it)
 LEAKS = [("blob-b", "press-c", [("crop", 0.5), ("random_similarity", None)], "cropped to half, rotated and rescaled"),
          ("shell-a", "market-b", [("noise", 0.003)], "with noise of 0.3 % added"),
-         ("torus-a", "studio-a", [("random_similarity", None), ("clutter", 3.0)],
+         ("blob-a", "studio-a", [("random_similarity", None), ("clutter", 3.0)],
           "rotated, rescaled and placed in a scene of three times its points")]
 
 

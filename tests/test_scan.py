@@ -31,6 +31,12 @@ SUSPECTS = {
     "leak-removal": (2, 0, [("removal", 0.5)]),
     "leak-crop": (3, 1, [("crop", 0.7)]),
     "leak-exact": (4, 2, []),
+    # part-to-whole, through the CLI: half of the asset, and the asset inside a scene.  (The
+    # 5,000-point procedural shapes are poorer in local features than the real scans of
+    # tests/test_robustness_part.py: a 1,500-point crop of a smooth blob, or a torus, symmetric
+    # about its axis, among clutter, is registered at some seeds only; see bench/leaks.py.)
+    "leak-part": (2, 2, [("crop", 0.5), ("random_similarity", None)]),
+    "leak-scene": (3, 1, [("random_similarity", None), ("clutter", 3.0)]),
 }
 
 
@@ -81,7 +87,13 @@ def test_scan_exits_1_on_a_match(scanned):
     assert res.returncode == 1, res.stdout + res.stderr
 
 
-@pytest.mark.parametrize("name", list(SUSPECTS))
+SCENE_GAP = pytest.mark.xfail(strict=True, reason=(
+    "known gap (issue 13): a 5,000-point procedural terrain among procedural clutter (bumpy blobs, "
+    "boxes, cylinders) is registered onto the wrong objects at this seed (fitness 0.21, coverage 0.18); "
+    "real scans among clutter register (tests/test_robustness_part.py)"))
+
+
+@pytest.mark.parametrize("name", [pytest.param(n, marks=SCENE_GAP) if n == "leak-scene" else n for n in SUSPECTS])
 def test_attacked_copies_are_attributed_to_asset_and_recipient(scanned, name):
     tmp, _, _ = scanned
     a, r, _ = SUSPECTS[name]
@@ -90,6 +102,7 @@ def test_attacked_copies_are_attributed_to_asset_and_recipient(scanned, name):
     assert row["candidate_asset"] == f"asset-{a}" and row["recipient"] == RECIPIENTS[r]
     if name != "leak-exact":
         assert row["score"] >= row["threshold"] and row["p_value"] < 1e-6 and row["margin"] > 0
+        assert row["registration_status"] == "registered" and row["registration_coverage"] > 0.25
 
 
 @pytest.mark.parametrize("name", ["unrelated", "unmarked"])
@@ -103,5 +116,5 @@ def test_a_second_scan_skips_suspects_already_scanned(scanned):
     before = len(read_scan(tmp / "scan"))
     res = subprocess.run([sys.executable, "-m", "pipeline.cli", "scan", str(tmp / "scan.yaml")], cwd=tmp,
                          env=env, capture_output=True, text=True, timeout=600)
-    assert "7 already scanned" in res.stdout, res.stdout + res.stderr
+    assert f"{len(SUSPECTS) + 2} already scanned" in res.stdout, res.stdout + res.stderr
     assert res.returncode == 0 and len(read_scan(tmp / "scan")) == before
