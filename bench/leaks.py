@@ -147,7 +147,7 @@ def growth(work, rows, n_large=300, n_queries=20):
     from pipeline.features import build_index
     from pipeline.io.pointcloud import read_points
 
-    clouds = {r["asset_key"]: read_points(r["path"]).points for r in rows if r["status"] == "ok"}
+    clouds = {r["asset_key"]: read_points(work / r["path"]).points for r in rows if r["status"] == "ok"}
     extra = _procedural(n_large - len(clouds), 1000)
     queries = sorted((work / "suspects").glob("leak-*.ply"))[:: max(1, 217 // n_queries)][:n_queries]
     suspects = [read_points(q).points for q in queries]
