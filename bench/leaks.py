@@ -1,6 +1,6 @@
 """Leak-scan benchmark (issue 13): real and procedural assets, attacked leaks, negatives, catalogue growth.
 
-``python bench/run.py leaks`` (about an hour on 2 cores; not part of the
+``python bench/run.py leaks`` (over an hour on 2 cores; not part of the
 default ``make bench``).  Writes ``bench/results/leaks/summary.md``.
 
 Catalogue: every real scan of ``../shared/data/models`` except the 110,000-point

@@ -31,7 +31,7 @@ from .kernels.resampling import nearest_spacing
 
 __all__ = [
     "fpfh", "voxel_for", "match", "register_global", "GlobalResult",
-    "FeatureIndex", "build_index", "geometry_hash", "overlap_sides", "overlap_score", "overlap_rank", "dense_part", "median_spacing",
+    "FeatureIndex", "build_index", "geometry_hash", "harmonic", "overlap_rank", "dense_part", "median_spacing",
 ]
 
 NORMAL_RADIUS = 2.0     # voxels
@@ -169,8 +169,7 @@ class GlobalResult:
     @property
     def score(self):
         """Overlap seen from both sides (harmonic mean of fitness and coverage)."""
-        f, c = self.fitness, self.coverage
-        return 0.0 if f + c == 0 else 2 * f * c / (f + c)
+        return harmonic(self.fitness, self.coverage)
 
     def failed(self, min_fitness=0.1, min_coverage=0.1):
         """True when too little of either cloud lies on the other: no registration."""
@@ -203,29 +202,9 @@ def _original(points, spacing, target):
     return _CACHE[key]
 
 
-def overlap_sides(transform, suspect, original, spacing):
-    """Fitness and coverage of any registration (as :class:`GlobalResult`).
-
-    Parameters
-    ----------
-    transform : registration.Similarity, suspect -> original
-    suspect : (n, 3) float
-    original : (m, 3) float
-    spacing : float
-
-    Returns
-    -------
-    fitness, coverage : float in [0, 1]
-    """
-    ref = _original(original, spacing, 4000)
-    f, c, _ = registration.overlap(registration.apply(transform, suspect), ref.tree, ref.sample, 3.0 * spacing)
-    return f, c
-
-
-def overlap_score(transform, suspect, original, spacing):
-    """Harmonic mean of :func:`overlap_sides` (as :attr:`GlobalResult.score`)."""
-    f, c = overlap_sides(transform, suspect, original, spacing)
-    return 0.0 if f + c == 0 else 2 * f * c / (f + c)
+def harmonic(fitness, coverage):
+    """Overlap seen from both sides: the harmonic mean of fitness and coverage (0 when both are 0)."""
+    return 0.0 if fitness + coverage == 0 else 2 * fitness * coverage / (fitness + coverage)
 
 
 GOOD_RESIDUAL = 1.0   # spacings: a pose a few degrees off leaves more; the search goes on
@@ -262,7 +241,7 @@ def _multistart(sub, ref, original, transform, spacing):
     for start in starts:
         fine = registration.refine_part(sub, ref.tree, original, start, spacing=spacing, iterations=100)
         f, c, r = registration.overlap(registration.apply(fine, sub), ref.tree, ref.sample[:1000], 3.0 * spacing)
-        ranked.append((round(0.0 if f + c == 0 else 2 * f * c / (f + c), 2), -r, len(ranked), fine))
+        ranked.append((round(harmonic(f, c), 2), -r, len(ranked), fine))
     return max(ranked)[3]
 
 
@@ -275,7 +254,7 @@ def overlap_rank(transform, suspect, original, spacing):
     """
     ref = _original(original, spacing, 4000)
     f, c, r = registration.overlap(registration.apply(transform, suspect), ref.tree, ref.sample, 3.0 * spacing)
-    return round(0.0 if f + c == 0 else 2 * f * c / (f + c), 2), -r
+    return round(harmonic(f, c), 2), -r
 
 
 SCALES = (1.0, 2**0.5, 2**-0.5, 2.0, 0.5, 2**1.5, 2**-1.5)
@@ -358,7 +337,7 @@ def register_global(suspect, original, *, spacing, target=4000, scales=SCALES,
                                                  iterations=10)
                 f, c, _ = registration.overlap(registration.apply(quick, probe), ref.tree, ref.sample[:1000],
                                                3.0 * spacing)
-                checked.append((0.0 if f + c == 0 else 2 * f * c / (f + c), quick, inliers))
+                checked.append((harmonic(f, c), quick, inliers))
             if not checked:
                 continue
             _, quick, inliers = max(checked, key=lambda x: x[0])

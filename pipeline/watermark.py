@@ -524,11 +524,11 @@ def estimate_differences(suspect, reference, specs, bases, detect_params, displa
     """
     t0 = time.perf_counter()
     spacing = resampling.nearest_spacing(reference) if spacing is None else spacing
-    cut = 3.0 * float(np.median(spacing))
-    transform = _register(suspect, reference, float(np.median(spacing)), detect_params.registration)
+    tree = cKDTree(reference)
+    transform = _register(suspect, reference, float(np.median(spacing)), detect_params.registration, tree)
     aligned = registration.apply(transform, suspect)
-    fitness, coverage, _ = registration.overlap(aligned, cKDTree(reference),
-                                                reference[:: max(1, len(reference) // 4000)], cut)
+    fitness, coverage, _ = registration.overlap(aligned, tree, _coverage_sample(reference),
+                                                3.0 * float(np.median(spacing)))
     t1 = time.perf_counter()
     deltas, support = _coefficient_differences(aligned, reference, specs, bases, detect_params, displacement,
                                                normals, grams, spacing)
@@ -583,7 +583,12 @@ def _diag(points):
     return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
 
 
-def _register(suspect, reference, spacing, method):
+def _coverage_sample(reference):
+    """At most about 4,000 reference points, at which coverage is measured."""
+    return reference[:: max(1, len(reference) // 4000)]
+
+
+def _register(suspect, reference, spacing, method, tree):
     if method == "none":
         return registration.Similarity(np.eye(3), 1.0, np.zeros(3))
     if method == "paper":
@@ -593,16 +598,18 @@ def _register(suspect, reference, spacing, method):
 
         return features.register_global(suspect, reference, spacing=spacing).transform
     robust = registration.register_robust(suspect, reference, spacing=spacing)
-    from . import features   # open3d: imported only when needed
-
     # a whole copy overlaps the original from both sides; a part of it, the
     # asset among clutter or junk, or a fit collapsed to a tiny scale (every
     # point "near" the original) does not, and there the principal frames
     # mean little: let the feature-based global step compete
-    if min(features.overlap_sides(robust, suspect, reference, spacing)) >= 0.8:
+    fitness, coverage, _ = registration.overlap(registration.apply(robust, suspect), tree,
+                                                _coverage_sample(reference), 3.0 * spacing)
+    if min(fitness, coverage) >= 0.8:
         return robust
+    from . import features   # open3d: imported only when needed
+
     # (its ICP trims by a quantile, which outliers widen: polish it with a fixed cut first)
-    robust = registration.refine_part(suspect, cKDTree(reference), reference, robust, spacing=spacing,
+    robust = registration.refine_part(suspect, tree, reference, robust, spacing=spacing,
                                       widths=(3.0,), iterations=features.FINAL_ITERATIONS)
     found = features.register_global(suspect, reference, spacing=spacing).transform
     rank = functools.partial(features.overlap_rank, suspect=suspect, original=reference, spacing=spacing)
