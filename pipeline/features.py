@@ -31,7 +31,7 @@ from .kernels.resampling import nearest_spacing
 
 __all__ = [
     "fpfh", "voxel_for", "match", "register_global", "GlobalResult",
-    "FeatureIndex", "build_index", "geometry_hash", "harmonic", "overlap_rank", "dense_part", "median_spacing",
+    "FeatureIndex", "build_index", "geometry_hash", "harmonic", "best_overlap", "overlap_of", "dense_part", "median_spacing",
 ]
 
 NORMAL_RADIUS = 2.0     # voxels
@@ -222,7 +222,7 @@ PERTURBATIONS = (-30.0, -15.0, 15.0, 30.0)   # degrees, about each axis through 
 def _multistart(sub, ref, original, transform, spacing):
     """Best ICP result from ``transform`` and from it turned by each of :data:`PERTURBATIONS`.
 
-    Ranked by overlap score (to 2 decimals), then by residual.
+    Chosen by :func:`best_overlap`.
     """
     from scipy.spatial.transform import Rotation
 
@@ -237,24 +237,44 @@ def _multistart(sub, ref, original, transform, spacing):
             turn = Rotation.from_rotvec(np.radians(angle) * axis).as_matrix()
             starts.append(registration.Similarity(turn @ transform.rotation, transform.scale,
                                                   turn @ (transform.translation - centre) + centre))
-    ranked = []
+    fits, ranked = [], []
     for start in starts:
         fine = registration.refine_part(sub, ref.tree, original, start, spacing=spacing, iterations=100)
         f, c, r = registration.overlap(registration.apply(fine, sub), ref.tree, ref.sample[:1000], 3.0 * spacing)
-        ranked.append((round(harmonic(f, c), 2), -r, len(ranked), fine))
-    return max(ranked)[3]
+        fits.append(fine)
+        ranked.append((harmonic(f, c), r))
+    return fits[best_overlap(ranked)]
 
 
-def overlap_rank(transform, suspect, original, spacing):
-    """Sort key of registrations: overlap score (to 2 decimals), then the smaller residual.
+OVERLAP_TIE = 0.05   # overlaps this close count as equal: the smaller residual decides
+
+
+def best_overlap(ranked, tie=OVERLAP_TIE):
+    """Index of the best registration among ``(overlap, residual)`` pairs.
+
+    Among those whose overlap (harmonic mean of fitness and coverage) is
+    within ``tie`` of the largest, the smallest residual wins (the first on
+    a tie).  A pose slightly too large, or turned about a near-symmetry
+    axis, can cover a little more of the original than the true one with
+    several times its residual: the overlap alone would pick it.
+
+    Parameters
+    ----------
+    ranked : sequence of (float, float)
 
     Returns
     -------
-    (float, float)
+    int
     """
+    top = max(h for h, _ in ranked)
+    return min((r, i) for i, (h, r) in enumerate(ranked) if h >= top - tie)[1]
+
+
+def overlap_of(transform, suspect, original, spacing):
+    """``(overlap, residual)`` of a registration, for :func:`best_overlap`."""
     ref = _original(original, spacing, 4000)
     f, c, r = registration.overlap(registration.apply(transform, suspect), ref.tree, ref.sample, 3.0 * spacing)
-    return round(harmonic(f, c), 2), -r
+    return harmonic(f, c), r
 
 
 SCALES = (1.0, 2**0.5, 2**-0.5, 2.0, 0.5, 2**1.5, 2**-1.5)

@@ -8,7 +8,6 @@ produce the same bytes.
 
 from __future__ import annotations
 
-import functools
 
 import time
 from dataclasses import asdict, dataclass, field, replace
@@ -612,8 +611,8 @@ def _register(suspect, reference, spacing, method, tree):
     robust = registration.refine_part(suspect, tree, reference, robust, spacing=spacing,
                                       widths=(3.0,), iterations=features.FINAL_ITERATIONS)
     found = features.register_global(suspect, reference, spacing=spacing).transform
-    rank = functools.partial(features.overlap_rank, suspect=suspect, original=reference, spacing=spacing)
-    return found if rank(found) > rank(robust) else robust
+    ranked = [features.overlap_of(t, suspect, reference, spacing) for t in (robust, found)]
+    return (robust, found)[features.best_overlap(ranked)]
 
 
 def _coefficient_differences(aligned, reference, specs, bases, detect_params, displacement, normals=None,

@@ -103,3 +103,14 @@ def test_outlier_and_clutter_attacks_are_parsed_and_keep_the_asset_first():
 
     gap, _ = cKDTree(pts).query(scene[3000:])
     assert gap.min() > 0.05 * float((pts.max(axis=0) - pts.min(axis=0)).max())
+
+
+def test_near_equal_overlaps_are_decided_by_the_residual():
+    # the owl cropped to 30 %: a pose slightly off covered 0.345 of the
+    # original with residual 0.75 spacings, the true one 0.333 with 0.155
+    assert features.best_overlap([(0.512, 0.75), (0.499, 0.155)]) == 1
+    # a clearly larger overlap wins whatever its residual (a collapsed fit
+    # has a tiny residual and covers little)
+    assert features.best_overlap([(0.05, 0.01), (0.50, 0.80)]) == 1
+    # equal residuals: the first
+    assert features.best_overlap([(0.5, 0.2), (0.5, 0.2)]) == 0
