@@ -192,9 +192,14 @@ def run_scan(cfg, secret, *, force=False):
     previous = {} if force else _previous(out)
     t0 = time.perf_counter()
     counts = {"match": 0, "no match": 0, "inconclusive": 0, "failed": 0, "skipped": 0}
+    # suspects already scanned against these versions are skipped before any
+    # work (hashing is cheap; ranking a suspect against the catalogue is not)
+    done = [p for p in suspects if previous and _already(previous.get(_sha_or_none(p)), versions)]
+    counts["skipped"] = len(done)
     client, cluster = start_client(cfg)
     try:
-        triages = {client.submit(triage, str(p), descriptors, index_path, pure=False): p for p in suspects}
+        triages = {client.submit(triage, str(p), descriptors, index_path, pure=False): p
+                   for p in suspects if p not in done}
         pending = as_completed(list(triages))
         waiting = {}
         for fut in pending:
@@ -206,7 +211,7 @@ def run_scan(cfg, secret, *, force=False):
                     continue
                 info = fut.result()
                 prev = previous.get(info["sha256"])
-                if prev is not None and (prev["ledger_version"], prev["catalogue_version"]) == versions:
+                if _already(prev, versions):   # the same bytes twice in the folder
                     counts["skipped"] += 1
                     continue
                 verdict = _quick(info, by_sha, originals, out, versions)
@@ -271,13 +276,30 @@ def _prior(info):
     return (info.get("prev") or {}).get("n_checked") or 0
 
 
+def _sha_or_none(path):
+    """The file's sha256, or None when it cannot be read (its triage then fails and is recorded)."""
+    try:
+        return sha256_file(path)
+    except OSError:
+        return None
+
+
+def _already(prev, versions):
+    """True when a suspect's last result was against these ledger and catalogue versions."""
+    return prev is not None and (prev["ledger_version"], prev["catalogue_version"]) == versions
+
+
 def _submit_next(client, info, materials, store, detect_params, waiting, pending):
-    """Submit the suspect's next candidate check; False when none is left."""
+    """Submit the suspect's next candidate check; False when none is left.
+
+    Checks run before the triage of further suspects (higher priority), so
+    verdicts come out while a large folder is still being ranked.
+    """
     if not info["queue"]:
         return False
     asset, rows = info["queue"].pop(0)
     fut = client.submit(check_asset, info["path"], rows[-1]["source_path"], rows, materials, store, detect_params,
-                        pure=False)
+                        pure=False, priority=1)
     waiting[fut] = info
     pending.add(fut)
     return True
