@@ -31,7 +31,7 @@ from .kernels.resampling import nearest_spacing
 
 __all__ = [
     "fpfh", "voxel_for", "match", "register_global", "GlobalResult",
-    "FeatureIndex", "build_index", "geometry_hash", "harmonic", "best_overlap", "overlap_of", "dense_part", "median_spacing",
+    "FeatureIndex", "InvertedFile", "build_index", "nearest_exact", "geometry_hash", "harmonic", "best_overlap", "overlap_of", "dense_part", "median_spacing",
 ]
 
 NORMAL_RADIUS = 2.0     # voxels
@@ -475,21 +475,24 @@ class FeatureIndex:
     owner: np.ndarray
     hashes: list
     prior: np.ndarray = None
+    cells: "InvertedFile | None" = None
 
     def save(self, path):
         """Write the index as a ``.npz`` file."""
         from .io.pointcloud import atomic_write_bytes
 
         buf = io.BytesIO()
+        extra = {} if self.cells is None else {"centroids": self.cells.centroids, "cell": self.cells.cell}
         np.savez(buf, keys=np.array(self.keys, dtype=str), features=self.features, owner=self.owner,
-                 hashes=np.array(self.hashes, dtype=str), prior=self.prior)
+                 hashes=np.array(self.hashes, dtype=str), prior=self.prior, **extra)
         atomic_write_bytes(path, buf.getvalue())
 
     @classmethod
     def load(cls, path):
         data = np.load(path)
+        cells = InvertedFile(data["centroids"], data["cell"]) if "centroids" in data.files else None
         return cls([str(k) for k in data["keys"]], data["features"], data["owner"],
-                   [str(h) for h in data["hashes"]], data["prior"])
+                   [str(h) for h in data["hashes"]], data["prior"], cells)
 
     def exact(self, points):
         """Asset keys whose geometry hash equals the suspect's (re-saves, re-orderings)."""
@@ -511,14 +514,12 @@ class FeatureIndex:
         out = np.zeros(len(self.keys))
         if len(features) == 0:
             return out
-        index = self.features
+        neighbours = min(neighbours, len(self.features))
         for lo in range(0, len(features), chunk):
-            sim = features[lo:lo + chunk] @ index.T                       # (c, N)
-            top = np.argpartition(-sim, neighbours, axis=1)[:, :neighbours]
-            val = np.take_along_axis(sim, top, axis=1)
-            order = np.argsort(-val, axis=1)
-            top = np.take_along_axis(top, order, axis=1)
-            val = np.take_along_axis(val, order, axis=1)
+            if self.cells is None:
+                top, val = nearest_exact(features[lo:lo + chunk], self.features, neighbours)
+            else:
+                top, val = self.cells.nearest(features[lo:lo + chunk], self.features, neighbours)
             dist = np.sqrt(np.maximum(2.0 - 2.0 * val, 0.0))
             owners = self.owner[top]
             other = owners != owners[:, :1]
@@ -556,12 +557,15 @@ class FeatureIndex:
                 for i in ranked[:top_k]]
 
 
-def build_index(clouds):
+def build_index(clouds, *, ivf=None):
     """Index the local descriptors of every asset.
 
     Parameters
     ----------
     clouds : dict of asset_key -> (n, 3) float
+    ivf : bool, optional
+        Search through an :class:`InvertedFile`; by default from
+        :data:`IVF_MIN` index rows on.
 
     Returns
     -------
@@ -575,8 +579,94 @@ def build_index(clouds):
         owner.append(np.full(len(f), i, dtype=np.int32))
         hashes.append(geometry_hash(points))
     index = FeatureIndex(keys, np.concatenate(feats).astype(np.float32), np.concatenate(owner), hashes)
+    if len(index.features) >= (IVF_MIN if ivf is None else (0 if ivf else np.inf)):
+        index.cells = InvertedFile.train(index.features)
     index.prior = background_votes(index)
     return index
+
+
+def nearest_exact(queries, features, k):
+    """The ``k`` most similar rows of ``features`` for each query row (unit rows: cosine).
+
+    Returns
+    -------
+    top : (c, k) int, most similar first
+    similarity : (c, k) float
+    """
+    sim = queries @ features.T                                             # (c, N)
+    top = np.argpartition(-sim, k - 1, axis=1)[:, :k]
+    val = np.take_along_axis(sim, top, axis=1)
+    order = np.argsort(-val, axis=1, kind="stable")
+    return np.take_along_axis(top, order, axis=1), np.take_along_axis(val, order, axis=1)
+
+
+IVF_MIN = 200_000     # index rows from which the search goes through an inverted file (about 70 assets)
+IVF_PROBE = 16        # cells searched per query
+
+
+@dataclass
+class InvertedFile:
+    """Coarse cells over the index's descriptors (k-means), for a search that grows sublinearly.
+
+    A query is compared with the cell centroids and searched exactly inside
+    its :data:`IVF_PROBE` nearest cells only: with about sqrt(N) cells of
+    about sqrt(N) rows each, a query costs O(sqrt(N)) instead of O(N).  The
+    nearest neighbours found are approximate (a true neighbour in an
+    unprobed cell is missed); ``bench/leaks.py`` measures how often the
+    ranking changes.
+
+    Attributes
+    ----------
+    centroids : (n_cells, 33) float32, unit rows
+    cell : (N,) int32, the cell of every index row
+    """
+
+    centroids: np.ndarray
+    cell: np.ndarray
+
+    def __post_init__(self):
+        self._members = np.argsort(self.cell, kind="stable")          # rows grouped by cell
+        self._bounds = np.searchsorted(self.cell[self._members], np.arange(len(self.centroids) + 1))
+
+    @classmethod
+    def train(cls, features, *, sample=50_000, iterations=10, rng=0):
+        """Seeded spherical k-means on a sample; every row assigned to its nearest centroid."""
+        gen = np.random.default_rng(rng)
+        n_cells = max(1, int(np.sqrt(len(features))))
+        train = features[gen.choice(len(features), min(sample, len(features)), replace=False)]
+        centroids = train[gen.choice(len(train), n_cells, replace=False)].astype(np.float64)
+        for _ in range(iterations):
+            near = _argmax_chunked(train, centroids)
+            sums = np.zeros_like(centroids)
+            np.add.at(sums, near, train)
+            norms = np.linalg.norm(sums, axis=1, keepdims=True)
+            centroids = np.where(norms > 0, sums / np.maximum(norms, 1e-12), centroids)
+        centroids = centroids.astype(np.float32)
+        return cls(centroids, _argmax_chunked(features, centroids).astype(np.int32))
+
+    def nearest(self, queries, features, k, probe=IVF_PROBE):
+        """As :func:`nearest_exact`, searching the ``probe`` nearest cells of each query."""
+        probe = min(probe, len(self.centroids))
+        cells = np.argpartition(-(queries @ self.centroids.T), probe - 1, axis=1)[:, :probe]   # (c, probe)
+        top = np.zeros((len(queries), probe, k), dtype=np.int64)
+        val = np.full((len(queries), probe, k), -np.inf)
+        for c in np.unique(cells):
+            rows = self._members[self._bounds[c]:self._bounds[c + 1]]
+            q, slot = np.nonzero(cells == c)
+            if len(rows) == 0:
+                continue
+            kk = min(k, len(rows))
+            t, v = nearest_exact(queries[q], features[rows], kk)
+            top[q, slot, :kk] = rows[t]
+            val[q, slot, :kk] = v
+        top, val = top.reshape(len(queries), -1), val.reshape(len(queries), -1)
+        order = np.argsort(-val, axis=1, kind="stable")[:, :k]
+        return np.take_along_axis(top, order, axis=1), np.take_along_axis(val, order, axis=1)
+
+
+def _argmax_chunked(rows, centroids, chunk=8192):
+    return np.concatenate([np.argmax(rows[lo:lo + chunk] @ centroids.T, axis=1)
+                           for lo in range(0, len(rows), chunk)]) if len(rows) else np.zeros(0, dtype=np.int64)
 
 
 def background_votes(index, n_points=20000, rng=0):

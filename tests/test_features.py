@@ -69,6 +69,29 @@ def index(models, tmp_path_factory):
     return features.FeatureIndex.load(path)
 
 
+@pytest.fixture(scope="module")
+def ivf_index(index, tmp_path_factory):
+    """The same index searched through an inverted file (large catalogues), saved and loaded."""
+    built = features.FeatureIndex(index.keys, index.features, index.owner, index.hashes, index.prior,
+                                  features.InvertedFile.train(index.features))
+    path = tmp_path_factory.mktemp("ivf") / "index.npz"
+    built.save(path)
+    loaded = features.FeatureIndex.load(path)
+    assert loaded.cells is not None and np.array_equal(loaded.cells.cell, built.cells.cell)
+    return loaded
+
+
+def test_the_inverted_file_finds_the_exact_nearest_descriptor_almost_always(models, index, ivf_index):
+    suspect = surface.apply_chain(models["kitten_12623"], [("crop", 0.5), ("random_similarity", None)], rng=5)
+    _, feats = features.describe(suspect)
+    exact, _ = features.nearest_exact(feats, index.features, 8)
+    approx, sim = ivf_index.cells.nearest(feats, index.features, 8)
+    assert (approx[:, 0] == exact[:, 0]).mean() > 0.97
+    assert np.all(np.diff(sim, axis=1) <= 0)          # most similar first
+    assert len(ivf_index.cells.centroids) == int(np.sqrt(len(index.features)))
+
+
+@pytest.mark.parametrize("search", ["index", "ivf_index"])
 @pytest.mark.parametrize("model,chain", [
     ("bunny_zipper_faceref_34834", "crop:0.3+random_similarity"),
     ("kitten_12623", "crop:0.5+random_similarity+noise:0.3%"),
@@ -77,10 +100,10 @@ def index(models, tmp_path_factory):
     ("fertility_4494", "outliers:0.5"),
     ("nikolov_blackvase_17337", "noise:0.5%+random_similarity"),
 ])
-def test_the_right_asset_is_among_the_top_3(models, index, model, chain):
+def test_the_right_asset_is_among_the_top_3(models, request, search, model, chain):
     steps = [surface.parse_attack(s) for s in chain.split("+")] + [("shuffle", None)]
     suspect = surface.apply_chain(models[model], steps, rng=3)
-    ranked = index.rank(suspect, top_k=3)
+    ranked = request.getfixturevalue(search).rank(suspect, top_k=3)
     assert model in [k for k, _ in ranked], ranked
 
 
