@@ -76,6 +76,13 @@ WATERMARK = _section("Embedding parameters (paper, section 2.2).", {
     "displacement": _p(["xyz", "normal"], "xyz",
                        "xyz: the paper's displacement; normal: its part along the normals, at the "
                        "same RMSE and peak."),
+    "amplitude": _p(["model", "cluster"], "model",
+                    "phi in alpha = beta * phi: the largest bbox side of the whole model (the paper) or of "
+                    "each cluster (large scenes: the motion follows the local extent, not the tile's)."),
+    "max_displacement": _p(("number", "null"), None,
+                           "Cap, in the asset's units, on any point's motion (survey data: e.g. 0.01); "
+                           "a cluster whose largest motion exceeds it is scaled down as a whole. "
+                           "null: no cap.", exclusiveMinimum=0),
 })
 
 DETECTION = _section("Detection (paper, section 2.2, Extraction).", {

@@ -21,7 +21,8 @@ __all__ = [
     "WatermarkParams", "DetectParams", "Frame", "ClusterSpec", "frame_of", "plan_clusters",
     "cluster_basis", "cluster_normals", "modulate_cluster", "embed", "embed_with_bases", "detect",
     "detect_with_bases", "estimate_differences", "decode", "distortion", "WatermarkError",
-    "Reference", "build_reference", "fingerprint_length", "fingerprint_displacement",
+    "Reference", "build_reference", "fingerprint_length", "fingerprint_displacement", "cluster_amplitude",
+    "capped",
     "fingerprint_observation", "ReferenceMismatch",
 ]
 
@@ -51,6 +52,8 @@ class WatermarkParams:
     first_coefficient: int = 0        # index of the first modulated coefficient
     crc_bits: int = 0                 # 0 (paper), 8 or 16
     displacement: str = "xyz"         # "xyz" (paper) or "normal": the same RMSE, along the normals
+    amplitude: str = "model"          # phi of the whole model (paper) or of each cluster
+    max_displacement: float | None = None   # cap on any point's motion, in the asset's units
 
     @property
     def total_bits(self):
@@ -179,7 +182,7 @@ def fingerprint_length(n_clusters, params):
     return int(n_clusters) * 3 * params.total_bits * params.chip_rate
 
 
-def fingerprint_displacement(reference, chips, params):
+def fingerprint_displacement(reference, chips, params, points=None):
     """Displacement of every point for one recipient's fingerprint (centred frame).
 
     Each cluster's modulated coefficients get alpha * x (eq. 4 with the
@@ -192,21 +195,26 @@ def fingerprint_displacement(reference, chips, params):
     reference : Reference
     chips : (fingerprint_length,) float in {-1, +1}
     params : WatermarkParams
+    points : (n, 3) float, optional
+        The original (any translation); needed when ``params.amplitude ==
+        "cluster"``.
 
     Returns
     -------
-    moved : (n_points_in_clusters, 3) float, rows of ``np.concatenate(members)``
+    moved : list of (n_c, 3) float, one per cluster, rows of its ``members``
     """
+    if params.amplitude == "cluster" and points is None:
+        raise ValueError("amplitude 'cluster' needs the original's points")
     count = params.total_bits * params.chip_rate
-    amplitude = params.beta * reference.phi
     out = []
-    for c, basis in enumerate(reference.bases):
+    for c, (spec, basis) in enumerate(zip(reference.specs, reference.bases)):
+        amplitude = cluster_amplitude(params, reference.phi, None if points is None else points[spec.members])
         x = chips[c * 3 * count:(c + 1) * 3 * count].reshape(3, count)
         moved = basis[:, params.first_coefficient:params.first_coefficient + count] @ (amplitude * x.T)
         if params.displacement == "normal":
             cap = float(np.sqrt((moved**2).sum(axis=1).max()))
             moved, _ = modulation.along_normals(moved, reference.normals[c], cap=cap)
-        out.append(moved)
+        out.append(capped(moved, params))
     return out
 
 
@@ -433,9 +441,46 @@ def embed_with_bases(centred, specs, bases, material, message_bits, params, phi)
     bits = payload_bits(message_bits, params)
     moved = centred.copy()
     for spec, basis in zip(specs, bases):
-        moved[spec.members] += modulate_cluster(basis, spec.index, material, bits, params.beta * phi, params,
-                                                cluster_normals(centred, spec.members, params))
+        alpha = cluster_amplitude(params, phi, centred[spec.members])
+        moved[spec.members] += capped(modulate_cluster(basis, spec.index, material, bits, alpha, params,
+                                                       cluster_normals(centred, spec.members, params)), params)
     return moved
+
+
+def cluster_amplitude(params, phi, cluster_points):
+    """alpha = beta * phi of one cluster.
+
+    Parameters
+    ----------
+    params : WatermarkParams
+    phi : float
+        Largest bbox side of the whole model (the paper's phi).
+    cluster_points : (n_c, 3) float
+        Used when ``params.amplitude == "cluster"``: phi is then the
+        cluster's own largest bbox side, so a cluster of a 1 km tile moves
+        by its local extent, not the tile's.
+
+    Returns
+    -------
+    float
+    """
+    if params.amplitude == "cluster":
+        return params.beta * float(np.ptp(cluster_points, axis=0).max()) if len(cluster_points) else 0.0
+    return params.beta * phi
+
+
+def capped(moved, params):
+    """A cluster's displacement (n_c, 3), scaled down as a whole so no point moves farther than the cap.
+
+    Scaling the whole cluster keeps the spread-spectrum pattern (a clip per
+    point would add a distortion correlated with no chip); detection
+    normalises each cluster's energy, so it needs no record of the factor.
+    """
+    cap = params.max_displacement
+    if cap is None or len(moved) == 0:
+        return moved
+    peak = float(np.sqrt((moved**2).sum(axis=1).max()))
+    return moved if peak <= cap else moved * (cap / peak)
 
 
 def distortion(original, watermarked, tree=None, normals=None):

@@ -178,7 +178,7 @@ def fingerprint_trial(model_path, handle, params, detect_params, chain_text, cas
 
     def copy(chips):
         moved = centred.copy()
-        for spec, d in zip(ref.specs, fingerprint_displacement(ref, chips, params)):
+        for spec, d in zip(ref.specs, fingerprint_displacement(ref, chips, params, centred)):
             moved[spec.members] += d
         return moved
 

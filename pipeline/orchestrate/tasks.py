@@ -128,7 +128,7 @@ def issue_task(plan, cluster_results, material, items, params, row_base):
         t0 = time.perf_counter()
         marked = points.copy()
         for spec, moved in zip(ref.specs, fingerprint_displacement(ref, fingerprint.signs(bank[j], length)[0],
-                                                                    params)):
+                                                                    params, points)):
             marked[spec.members] += moved
         out = Path(out)
         pending = out.with_name(f".{out.stem}.pending{out.suffix}")

@@ -1,0 +1,69 @@
+"""Amplitude rules for large scenes (issue 15): per-cluster phi and an absolute cap."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from pipeline import demo, watermark
+from pipeline.kernels import keys, modulation
+from pipeline.watermark import DetectParams, WatermarkParams
+
+MATERIAL = keys.derive_key_material(b"amplitude-test-secret-0123456789", "tile")
+BITS = modulation.hex_to_bits("C0FFEE42", 32)
+PARAMS = WatermarkParams(cluster_size=1000, cover=True, displacement="normal", chip_layout="interleaved")
+IN_PLACE = DetectParams(registration="none")     # a crop of a survey tile keeps its coordinates
+
+
+@pytest.fixture(scope="module")
+def tile():
+    """A 1 km terrain tile of 8,000 points, far from the origin like survey data."""
+    return demo.procedural_shape("terrain", 8000, seed=4) * 500.0 + np.array([4.9e5, 5.0e6, 120.0])
+
+
+def _peak(a, b):
+    return float(np.sqrt(((a - b) ** 2).sum(axis=1)).max())
+
+
+@pytest.fixture(scope="module")
+def capped(tile):
+    params = replace(PARAMS, max_displacement=0.01)
+    marked, _ = watermark.embed(tile, MATERIAL, BITS, params)
+    return params, marked
+
+
+def test_no_point_moves_farther_than_the_cap(tile, capped):
+    params, marked = capped
+    paper, _ = watermark.embed(tile, MATERIAL, BITS, PARAMS)
+    assert _peak(paper, tile) > 1.0              # the paper's rule: beta times the 1 km side
+    # (at 5e6 a float64 holds about 1e-9: the sum with the centre rounds)
+    assert _peak(marked, tile) <= 0.01 + 1e-8
+
+
+def test_a_capped_tile_decodes_whole_and_from_any_tenth(tile, capped):
+    params, marked = capped
+    assert watermark.detect(marked, tile, MATERIAL, params, IN_PLACE)["bits"] == BITS.tolist()
+    lo, hi = tile.min(axis=0), tile.max(axis=0)
+    side = np.sqrt(0.1) * (hi - lo)
+    for corner in ((0.0, 0.0), (0.5, 0.2), (0.68, 0.68)):
+        start = lo[:2] + np.array(corner) * (hi - lo)[:2]
+        keep = np.all((marked[:, :2] >= start) & (marked[:, :2] < start + side[:2]), axis=1)
+        result = watermark.detect(marked[keep], tile, MATERIAL, params, IN_PLACE)
+        assert result["bits"] == BITS.tolist() and result["detected"], corner
+
+
+def test_cluster_amplitude_follows_the_cluster_not_the_tile(tile):
+    whole, _ = watermark.embed(tile, MATERIAL, BITS, PARAMS)
+    local, clusters = watermark.embed(tile, MATERIAL, BITS, replace(PARAMS, amplitude="cluster"))
+    assert len(clusters) == 8
+    ratio = _peak(local, tile) / _peak(whole, tile)
+    assert 0.2 < ratio < 0.7                     # each cluster spans about 1/sqrt(8) of the tile
+    assert watermark.detect(local, tile, MATERIAL, replace(PARAMS, amplitude="cluster"),
+                            IN_PLACE)["bits"] == BITS.tolist()
+
+
+def test_the_cap_scales_a_cluster_as_a_whole():
+    moved = np.array([[0.0, 0.0, 3.0], [0.0, 4.0, 0.0], [1.0, 0.0, 0.0]])
+    out = watermark.capped(moved, WatermarkParams(max_displacement=2.0))
+    assert np.allclose(out, moved * 0.5)
+    assert watermark.capped(moved, WatermarkParams()) is moved
