@@ -1,6 +1,6 @@
 """Leak-scan benchmark (issue 13): real and procedural assets, attacked leaks, negatives, catalogue growth.
 
-``python bench/run.py leaks`` (over an hour on 2 cores; not part of the
+``python bench/run.py leaks`` (several hours on 2 cores; not part of the
 default ``make bench``).  Writes ``bench/results/leaks/summary.md``.
 
 Catalogue: every real scan of ``../shared/data/models`` except the 110,000-point
@@ -216,6 +216,7 @@ def _issue(work):
 
     for sub in ("scan", "suspects"):
         shutil.rmtree(work / sub, ignore_errors=True)
+    (work / "truth.json").unlink(missing_ok=True)    # a resume must not pair an old truth with new suspects
     t0 = time.perf_counter()
     catalogue = build_catalogue(work)
     cfg = _config(work, work / "manifests", work / "marked", "bench")

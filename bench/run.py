@@ -204,7 +204,7 @@ def issue_bench(n_copies=1000):
 
 
 def leaks_bench():
-    """Leak scan over real scans and procedural shapes (issue 13; over an hour): see bench/leaks.py."""
+    """Leak scan over real scans and procedural shapes (issue 13; several hours): see bench/leaks.py."""
     sys.path.insert(0, str(ROOT / "bench"))
     from leaks import leaks_bench as run
 

@@ -50,7 +50,8 @@ def method_params(method, params, detect_params):
     """
     if method == "robust":
         return params, detect_params
-    paper_embedding = replace(params, displacement="xyz", chip_layout="consecutive")
+    paper_embedding = replace(params, displacement="xyz", chip_layout="consecutive", amplitude="model",
+                              max_displacement=None)
     if method == "paper":
         return paper_embedding, replace(detect_params, registration="paper", correspondence="paper")
     return paper_embedding, detect_params

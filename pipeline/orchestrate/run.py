@@ -83,8 +83,16 @@ class Job:
         return [a for a in self.assets if a.items or a.error]
 
 
+# Fields added after a ledger format was first written: left out of the
+# generation id at their defaults, so a rerun of an older ledger with an
+# unchanged config stays in its generation
+_LATER_DEFAULTS = {"amplitude": "model", "max_displacement": None}
+
+
 def _generation_id(params, key_id, fingerprint, source_sha256):
-    text = json.dumps({"params": params_record(params), "key_id": key_id, "fp": fingerprint, "mark": MARK,
+    record = {k: v for k, v in params_record(params).items()
+              if not (k in _LATER_DEFAULTS and v == _LATER_DEFAULTS[k])}
+    text = json.dumps({"params": record, "key_id": key_id, "fp": fingerprint, "mark": MARK,
                        "source": source_sha256, "version": __version__}, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 

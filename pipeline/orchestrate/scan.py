@@ -120,11 +120,14 @@ def _candidates(info, view, top_k):
     return list(dict.fromkeys(pick))
 
 
+INDEX_FORMAT = "v2"   # v2: large indexes carry inverted-file cells
+
+
 def _build_index(out, cat_version, catalogue_paths):
     """The catalogue's local-descriptor index, built once per catalogue version."""
     from ..features import build_index
 
-    path = Path(out) / "state" / f"index-{cat_version}.npz"
+    path = Path(out) / "state" / f"index-{INDEX_FORMAT}-{cat_version}.npz"
     if path.exists() or not catalogue_paths:
         return str(path) if path.exists() else None
     clouds, missing = {}, []
@@ -194,7 +197,7 @@ def run_scan(cfg, secret, *, force=False):
     counts = {"match": 0, "no match": 0, "inconclusive": 0, "failed": 0, "skipped": 0}
     # suspects already scanned against these versions are skipped before any
     # work (hashing is cheap; ranking a suspect against the catalogue is not)
-    done = [p for p in suspects if previous and _already(previous.get(_sha_or_none(p)), versions)]
+    done = {p for p in suspects if previous and _already(previous.get(_sha_or_none(p)), versions)}
     counts["skipped"] = len(done)
     client, cluster = start_client(cfg)
     try:

@@ -156,5 +156,6 @@ def _realized_ratio(original, intended, written, out):
     if not np.any(got) or ratio < MIN_REALIZED:
         raise CopyIntegrityError(
             f"{out}: the copy does not differ measurably from its original (the file keeps "
-            f"{100 * max(ratio, 0.0):.1f} % of the displacement at its precision); raise beta")
+            f"{100 * max(ratio, 0.0):.1f} % of the displacement at its precision); raise beta "
+            f"(or max_displacement, when a cap limits the motion)")
     return ratio

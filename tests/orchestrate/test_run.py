@@ -1,23 +1,27 @@
 """The catalogue job on a real Dask cluster, against a plain serial loop."""
 
+import hashlib
+import json
 import os
 import signal
 import socket
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import pyarrow.dataset as ds
 import pytest
 import yaml
 
-from pipeline import config
+from pipeline import __version__, config
 from pipeline.io.ledger import LEDGER_SCHEMA, Ledger
 from pipeline.io.pointcloud import write_array
 from pipeline.demo import procedural_shape
-from pipeline.orchestrate.run import plan_job, run_job
+from pipeline.orchestrate.run import MARK, _generation_id, plan_job, run_job
 from pipeline.orchestrate.progress import Progress
+from pipeline.watermark import WatermarkParams
 from tests.conftest import ROOT
 
 pytestmark = pytest.mark.slow
@@ -347,3 +351,25 @@ def test_an_asset_with_every_point_stored_twice_is_a_failed_row(tmp_path):
     assert counts == {"ok": 1, "failed": 1, "skipped": 0}
     failed = [r for r in _rows(job) if r["status"] == "failed"]
     assert {r["asset_key"] for r in failed} == {"doubled"} and "repeat another point" in failed[0]["error"]
+
+
+# the parameter record of a 0.2.0 ledger row (before amplitude and max_displacement)
+RECORD_0_2_0 = {"n_bits": 32, "chip_rate": 10, "beta": 0.002, "valence": 12.0, "n_clusters": 5,
+                "cluster_size": 4000, "seeds": None, "on_touch": "skip", "cover": False,
+                "chip_layout": "consecutive", "first_coefficient": 0, "crc_bits": 0, "displacement": "xyz"}
+
+
+def _id_0_2_0(record):
+    text = json.dumps({"params": record, "key_id": "k", "fp": "f" * 16, "mark": MARK, "source": "s" * 64,
+                       "version": __version__}, sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def test_a_rerun_with_an_unchanged_config_stays_in_its_generation():
+    assert _generation_id(WatermarkParams(), "k", "f" * 16, "s" * 64) == _id_0_2_0(RECORD_0_2_0)
+
+
+def test_a_new_amplitude_rule_or_cap_is_a_new_generation():
+    base = _generation_id(WatermarkParams(), "k", "f" * 16, "s" * 64)
+    assert _generation_id(WatermarkParams(amplitude="cluster"), "k", "f" * 16, "s" * 64) != base
+    assert _generation_id(replace(WatermarkParams(), max_displacement=0.01), "k", "f" * 16, "s" * 64) != base
