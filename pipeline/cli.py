@@ -107,6 +107,8 @@ def build_parser():
 
     p = sub.add_parser("evaluate", help="robustness grid on Dask: Parquet results, plots, summary")
     p.add_argument("config_file")
+    p.add_argument("--only", action="append", default=[], metavar="EXPERIMENT",
+                   help="run only the experiments of this name (repeatable)")
     p.add_argument("--set", dest="sets", action="append", default=[], metavar="NAME=VALUE")
     p.add_argument("--secret-file")
     p.set_defaults(func=cmd_evaluate)
@@ -177,7 +179,9 @@ def cmd_embed(args):
         f"{params.n_bits} bits",
         f"distortion: RMSE {100 * d['rmse_rel_diag']:.4f} % of diag, "
         f"Hausdorff {100 * d['hausdorff_rel_diag']:.4f} %, "
-        f"to the surface {100 * d['surface_rmse_rel_diag']:.4f} %",
+        f"to the surface {100 * d['surface_rmse_rel_diag']:.4f} % (MRMS both ways "
+        f"{100 * d['mrms_rel_diag']:.4f} %, surface Hausdorff {100 * d['surface_hausdorff_rel_diag']:.4f} %), "
+        f"normal deviation {d['normal_deviation_deg']:.3f} deg, MSDM {d['msdm']:.3f}",
     ])
     return 0
 
@@ -278,6 +282,13 @@ def cmd_evaluate(args):
     from .orchestrate.evaluate import run_evaluation
 
     cfg = config_mod.load_config(args.config_file, args.sets)
+    if args.only:
+        names = {e["name"] for e in cfg["evaluate"]["experiments"]}
+        unknown = sorted(set(args.only) - names)
+        if unknown:
+            raise config_mod.ConfigError(f"{args.config_file}: --only {unknown[0]}: no such experiment "
+                                         f"(there are: {', '.join(sorted(names))})")
+        cfg["evaluate"]["experiments"] = [e for e in cfg["evaluate"]["experiments"] if e["name"] in args.only]
     secret = _secret(args, cfg)
     return run_evaluation(cfg, secret)
 

@@ -18,7 +18,7 @@ from pathlib import Path
 import yaml
 
 from .io.catalog import RECIPIENT_PATTERN
-from .watermark import DetectParams, WatermarkParams
+from .watermark import DetectParams, WatermarkParams, check_code
 
 __all__ = ["ConfigError", "SCHEMA", "load_config", "watermark_params", "detect_params",
            "schema_json"]
@@ -83,6 +83,10 @@ WATERMARK = _section("Embedding parameters (paper, section 2.2).", {
                            "Cap, in the asset's units, on any point's motion (survey data: e.g. 0.01); "
                            "a cluster whose largest motion exceeds it is scaled down as a whole. "
                            "null: no cap.", exclusiveMinimum=0),
+    "code": _p(["repetition", "convolutional"], "repetition",
+               "Channel code of the payload: repetition (the paper: each bit on c chips) or "
+               "convolutional (rate 1/2, K = 7, the same m x c chips over the coded word, soft "
+               "max-log-MAP decoding; needs chip_rate >= 3 for 32 bits)."),
 })
 
 DETECTION = _section("Detection (paper, section 2.2, Extraction).", {
@@ -326,6 +330,11 @@ def validate(cfg, source="config"):
         err = errors[0]
         where = ".".join(str(p) for p in err.absolute_path) or "(top level)"
         raise ConfigError(f"{source}: {where}: {_explain(err)}")
+    try:
+        if isinstance(cfg.get("watermark"), dict):
+            check_code(watermark_params(cfg))
+    except (ValueError, TypeError) as exc:
+        raise ConfigError(f"{source}: watermark.code: {exc}") from None
 
 
 # YAML aliases can make a small file expand to a huge (or endless) tree.

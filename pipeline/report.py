@@ -75,7 +75,8 @@ def plot_noise_curves(rows, path):
 def plot_attacks(rows, path):
     """Mean BER per attack chain, one bar per method, one panel per model."""
     plt = _plt()
-    table = _group([r for r in rows if r["experiment"] != NOISE_CURVE], ("model", "attack", "method"))
+    table = _group([r for r in rows if r["experiment"] not in (NOISE_CURVE, RATE_DISTORTION)],
+                   ("model", "attack", "method"))
     models = sorted({k[0] for k in table})
     methods = [m for m in METHOD_ORDER if m in {k[2] for k in table}]
     if not models:
@@ -136,6 +137,116 @@ def plot_false_positives(fp_rows, path):
     return path
 
 
+RATE_DISTORTION = "rate-distortion"
+
+
+def variant(row):
+    """Label of an embedding and detector pair."""
+    if row["method"] == "paper":
+        return "paper embedding, paper detector"
+    if row["method"] == "robust-xyz":
+        return "paper embedding, robust detector"
+    return f"{row['displacement']}, {row.get('code', 'repetition')}, robust detector"
+
+
+def rate_distortion_curves(rows):
+    """{(model, attack): {variant: (distance, ber, mer, trials) arrays by beta}}, distance = MRMS / diag."""
+    rd = [r for r in rows if r["experiment"] == RATE_DISTORTION]
+    distance = {k: np.mean([r["mrms_rel_diag"] for r in rs])
+                for k, rs in _group(rd, ("model", "method", "displacement", "code", "beta")).items()}
+    curves = defaultdict(dict)
+    for (model, attack), rs in _group(rd, ("model", "attack")).items():
+        for label, vs in _group(rs, ("method", "displacement", "code")).items():
+            cells = sorted(_group(vs, ("beta",)).items())
+            x = np.array([distance[(model, *label, b)] for (b,), _ in cells])
+            ber = np.array([np.mean([r["ber"] for r in c]) for _, c in cells])
+            mer = np.array([np.mean([r["message_error"] for r in c]) for _, c in cells])
+            n = np.array([len(c) for _, c in cells])
+            curves[(model, attack)][variant(vs[0])] = (x, ber, mer, n)
+    return curves
+
+
+def _at(curve, x0):
+    """Value of a curve (x ascending) at x0, linear in log x; nan outside its range."""
+    x, y = curve
+    order = np.argsort(x)
+    x, y = np.log(x[order]), y[order]
+    if not (x[0] - 1e-9 <= np.log(x0) <= x[-1] + 1e-9):
+        return float("nan")
+    return float(np.interp(np.log(x0), x, y))
+
+
+def plot_rate_distortion(rows, folder):
+    """BER and message error rate against MRMS, one figure per model, one column per attack."""
+    curves = rate_distortion_curves(rows)
+    if not curves:
+        return []
+    plt = _plt()
+    paths = []
+    for model in sorted({m for m, _ in curves}):
+        attacks = sorted(a for m, a in curves if m == model)
+        fig, axes = plt.subplots(2, len(attacks), figsize=(4.2 * len(attacks), 7), squeeze=False, sharex=True)
+        for col, attack in enumerate(attacks):
+            for i, (label, (x, ber, mer, n)) in enumerate(sorted(curves[(model, attack)].items())):
+                for row, y in ((0, ber), (1, mer)):
+                    axes[row, col].plot(100 * x, y, marker="o", color=f"C{i}", label=label)
+            paper = curves[(model, attack)].get("paper embedding, paper detector")
+            for row in (0, 1):
+                ax = axes[row, col]
+                if paper is not None:
+                    ax.axvline(100 * np.median(paper[0]), color="grey", ls=":", lw=1)
+                ax.set_xscale("log")
+                ax.xaxis.set_major_formatter(plt.matplotlib.ticker.FormatStrFormatter("%.3g"))
+                ax.xaxis.set_minor_formatter(plt.matplotlib.ticker.FormatStrFormatter("%.3g"))
+                ax.set_ylim(-0.03, 1.03 if row else 0.6)
+                ax.grid(alpha=0.3, which="both")
+            axes[0, col].set_title(attack, fontsize=10)
+            axes[1, col].set_xlabel("MRMS distance to the surface (% of diagonal)")
+        axes[0, 0].set_ylabel("bit error rate")
+        axes[1, 0].set_ylabel("message error rate (any bit wrong)")
+        handles, labels = axes[0, 0].get_legend_handles_labels()
+        fig.legend(handles, labels, loc="upper center", ncol=2, fontsize=8, bbox_to_anchor=(0.5, 0.965))
+        fig.suptitle(f"{model}: rate-distortion at equal detector (dotted: the paper's beta 0.002)", y=0.995,
+                     fontsize=10)
+        fig.tight_layout(rect=(0, 0, 1, 0.89))
+        path = Path(folder) / f"rate_distortion_{model}.png"
+        fig.savefig(path, dpi=100)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+def rate_distortion_lines(rows):
+    """Markdown: each variant at the paper's distance to the surface, and the equal-distortion check."""
+    curves = rate_distortion_curves(rows)
+    if not curves:
+        return []
+    table, worse = [], []
+    for (model, attack), by in sorted(curves.items()):
+        paper = by.get("paper embedding, paper detector")
+        if paper is None:
+            continue
+        x0 = float(np.median(paper[0]))
+        for label, (x, ber, mer, n) in sorted(by.items()):
+            table.append([model, attack, label, f"{100 * x0:.4f}", f"{_at((x, ber), x0):.3f}",
+                          f"{_at((x, mer), x0):.2f}", int(n.min())])
+            if "robust detector" in label:
+                for xp, mp in zip(paper[0], paper[2]):
+                    m = _at((x, mer), xp)
+                    if np.isfinite(m) and m > mp + 1e-9:
+                        worse.append(f"{model}, {attack}, {label}: {m:.2f} against {mp:.2f} at "
+                                     f"{100 * xp:.4f} %")
+    return ["## Rate-distortion", "",
+            "Each curve is one embedding with one detector, beta swept on a sqrt(3) ladder; distance is the "
+            "MRMS between the surfaces (local tangent planes, both ways). Values at the paper's distance (its "
+            "embedding at beta 0.002) are read off each curve, linear in log distance ('nan': outside the "
+            "curve's range). Message error rate: share of trials with any payload bit wrong.", "",
+            _md_table(["model", "attack", "embedding, detector", "distance (% diag)", "BER", "message error rate",
+                       "trials per point"], table), "",
+            "Where a robust-detector curve has a higher message error rate than the paper's at one of the "
+            "paper's distortions: " + ("; ".join(worse) if worse else "nowhere."), ""]
+
+
 def _md_table(header, rows):
     out = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     out += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
@@ -176,14 +287,16 @@ def write_report(folder, rows, fp_rows, p_threshold, seconds, fingerprint_rows=(
     """Write plots and summary.md into ``folder``."""
     folder = Path(folder)
     plots = [plot_attacks(rows, folder / "attacks.png"), plot_noise_curves(rows, folder / "noise_curves.png"),
-             plot_false_positives(fp_rows, folder / "false_positives.png")]
+             plot_false_positives(fp_rows, folder / "false_positives.png"),
+             *plot_rate_distortion(rows, folder)]
     lines = ["# pointmark evaluation", "",
              f"{len(rows)} trials in {seconds:.0f} s. BER = bit errors / payload bits; every attacked "
              "copy was shuffled before detection.", ""]
     attack_rows = []
     present = {r["method"] for r in rows}
     methods = [m for m in METHOD_ORDER if m in present]
-    for (exp, model, attack), rs in sorted(_group([r for r in rows if r["experiment"] != NOISE_CURVE],
+    for (exp, model, attack), rs in sorted(_group([r for r in rows
+                                                   if r["experiment"] not in (NOISE_CURVE, RATE_DISTORTION)],
                                                   ("experiment", "model", "attack")).items()):
         by = _group(rs, ("method",))
         cells = []
@@ -196,6 +309,7 @@ def write_report(folder, rows, fp_rows, p_threshold, seconds, fingerprint_rows=(
         lines += ["## Attacks", "", _md_table(["experiment", "model", "attack",
                                               *[f"BER, {m}" for m in methods], "the paper reports"],
                                              attack_rows), ""]
+    lines += rate_distortion_lines(rows)
     noise = [r for r in rows if r["experiment"] == NOISE_CURVE]
     if noise:
         curve = []
@@ -204,14 +318,23 @@ def write_report(folder, rows, fp_rows, p_threshold, seconds, fingerprint_rows=(
         lines += ["## BER against noise (Figure 8)", "",
                   _md_table(["method", "beta", "c", "noise", "mean BER", "runs"], curve), ""]
     dist = _group(rows, ("model", "n_clusters", "beta", "chip_rate", "displacement"))
+    measures = ("rmse_rel_diag", "hausdorff_rel_diag", "surface_rmse_rel_diag", "mrms_rel_diag",
+                "surface_hausdorff_rel_diag")
+
+    def mean(rs, k, scale):
+        values = [r[k] for r in rs if r.get(k) is not None]
+        return f"{scale * np.mean(values):.4f}" if values else "-"
+
     lines += ["## Distortion", "",
-              "RMSE and Hausdorff as in ROBUSTNESS.md; surface RMS: distance of the marked points to "
-              "the tangent planes of the original (the motion across the surface).", "", _md_table(
+              "RMSE and Hausdorff as in ROBUSTNESS.md; surface RMS: distance of the marked points to the "
+              "tangent planes of the original (one way); MRMS and surface Hausdorff: between the two "
+              "surfaces (tangent planes of each, both ways, the larger); normal deviation in degrees; "
+              "MSDM-style roughness distance (0: same roughness).", "", _md_table(
                   ["model", "clusters", "beta", "c", "displacement", "RMSE (% diag)", "Hausdorff (% diag)",
-                   "surface RMS (% diag)"],
-                  [[*key, *[f"{100 * np.mean([r[k] for r in rs]):.4f}"
-                            for k in ("rmse_rel_diag", "hausdorff_rel_diag", "surface_rmse_rel_diag")]]
-                   for key, rs in sorted(dist.items())]), ""]
+                   "surface RMS (% diag)", "MRMS (% diag)", "surface Hausdorff (% diag)", "normal dev. (deg)",
+                   "MSDM"],
+                  [[*key, *[mean(rs, k, 100) for k in measures], mean(rs, "normal_deviation_deg", 1),
+                    mean(rs, "msdm", 1)] for key, rs in sorted(dist.items())]), ""]
     if fp_rows:
         fp = []
         for (label,), rs in sorted(_group(fp_rows, ("suspect",)).items()):

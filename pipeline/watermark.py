@@ -15,7 +15,8 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .kernels import clustering, digest, fingerprint, graph, keys, modulation, registration, resampling, spectral
+from .kernels import distortion as surface_measures
+from .kernels import clustering, coding, digest, fingerprint, graph, keys, modulation, registration, resampling, spectral
 
 __all__ = [
     "WatermarkParams", "DetectParams", "Frame", "ClusterSpec", "frame_of", "plan_clusters",
@@ -54,6 +55,7 @@ class WatermarkParams:
     displacement: str = "xyz"         # "xyz" (paper) or "normal": the same RMSE, along the normals
     amplitude: str = "model"          # phi of the whole model (paper) or of each cluster
     max_displacement: float | None = None   # cap on any point's motion, in the asset's units
+    code: str = "repetition"          # "repetition" (paper: each bit on c chips) or "convolutional"
 
     @property
     def total_bits(self):
@@ -283,6 +285,7 @@ def plan_clusters(points, params):
     list of ClusterSpec
     """
     n = len(points)
+    check_code(params, WatermarkError)
     if n < params.n_coefficients + spectral.GUARD:
         raise WatermarkError(
             f"the model has {n} points, fewer than the {params.n_coefficients} spectral "
@@ -366,6 +369,23 @@ def payload_bits(message_bits, params):
     return np.concatenate([message_bits, modulation.crc_bits(message_bits, params.crc_bits)])
 
 
+def check_code(params, error=ValueError):
+    """Raise ``error`` when the chips cannot carry the coded word."""
+    symbols = coding.coded_length(params.total_bits, params.code)
+    if params.total_bits * params.chip_rate < symbols:
+        raise error(f"code {params.code}: {params.total_bits} bits x chip rate {params.chip_rate} = "
+                    f"{params.total_bits * params.chip_rate} chips cannot carry its {symbols} coded symbols; "
+                    f"raise chip_rate to at least {-(-symbols // params.total_bits)}")
+
+
+def chip_map(params):
+    """What carries the coded word: the chip rate (repetition) or the symbol of each chip, (m * c,) int."""
+    if params.code == "repetition":
+        return params.chip_rate
+    count = params.total_bits * params.chip_rate
+    return coding.chip_groups(coding.coded_length(params.total_bits, params.code), count)
+
+
 def modulate_cluster(basis, cluster_index, material, bits, amplitude, params, normals=None):
     """Displacement of one cluster's points from its basis (eq. 2-4 and the synthesis).
 
@@ -387,8 +407,9 @@ def modulate_cluster(basis, cluster_index, material, bits, amplitude, params, no
     -------
     (n_c, 3) float
     """
-    delta = modulation.spread(bits, params.chip_rate, sequences(material, cluster_index, params),
-                              amplitude, chip_positions(material, cluster_index, params))
+    delta = modulation.spread(coding.encode(bits, params.code), chip_map(params),
+                              sequences(material, cluster_index, params), amplitude,
+                              chip_positions(material, cluster_index, params))
     moved = basis[:, : len(delta)] @ delta
     if params.displacement == "xyz":
         return moved
@@ -398,7 +419,8 @@ def modulate_cluster(basis, cluster_index, material, bits, amplitude, params, no
     paper = moved
     if params.chip_layout != "consecutive":
         paper = modulate_cluster(basis, cluster_index, material, bits, amplitude,
-                                 replace(params, displacement="xyz", chip_layout="consecutive"))
+                                 replace(params, displacement="xyz", chip_layout="consecutive",
+                                         code="repetition"))
     moved, _ = modulation.along_normals(moved, normals, cap=float(np.sqrt((paper**2).sum(axis=1).max())))
     return moved
 
@@ -487,9 +509,12 @@ def distortion(original, watermarked, tree=None, normals=None):
     """Distortion metrics relative to the bbox diagonal.
 
     RMSE of the point displacements (same order) and the symmetric Hausdorff
-    distance of ROBUSTNESS.md, plus the RMS distance of each watermarked point
-    to the tangent plane of its nearest original point: the part of the motion
-    that changes the surface rather than its sampling.
+    distance of ROBUSTNESS.md; the RMS distance of each watermarked point to
+    the tangent plane of its nearest original point (the part of the motion
+    that changes the surface rather than its sampling); and the measures of
+    :func:`pipeline.kernels.distortion.surface_distortion`: MRMS and
+    Hausdorff distance between the two surfaces (both directions), normal
+    deviation and the MSDM-style roughness measure.
 
     Parameters
     ----------
@@ -501,16 +526,23 @@ def distortion(original, watermarked, tree=None, normals=None):
 
     Returns
     -------
-    dict with rmse_rel_diag, hausdorff_rel_diag, surface_rmse_rel_diag
+    dict with rmse_rel_diag, hausdorff_rel_diag, surface_rmse_rel_diag,
+    mrms_rel_diag, surface_hausdorff_rel_diag, normal_deviation_deg, msdm
     """
-    diag = float(np.linalg.norm(original.max(axis=0) - original.min(axis=0)))
+    diag = _diag(original)
+    tree = tree or cKDTree(original)
     rmse = float(np.sqrt(((watermarked - original) ** 2).sum(axis=1).mean()))
-    d1, nearest = (tree or cKDTree(original)).query(watermarked)
+    d1, nearest = tree.query(watermarked)
     d2, _ = cKDTree(watermarked).query(original)
-    at = normals[nearest] if normals is not None else resampling.estimate_normals(original, at=nearest)
-    plane = np.einsum("ni,ni->n", watermarked - original[nearest], at)
+    if normals is None:
+        normals = resampling.estimate_normals(original)
+    plane = np.einsum("ni,ni->n", watermarked - original[nearest], normals[nearest])
+    surface = surface_measures.surface_distortion(original, watermarked, tree=tree, normals=normals)
     return {"rmse_rel_diag": rmse / diag, "hausdorff_rel_diag": float(max(d1.max(), d2.max())) / diag,
-            "surface_rmse_rel_diag": float(np.sqrt((plane**2).mean())) / diag}
+            "surface_rmse_rel_diag": float(np.sqrt((plane**2).mean())) / diag,
+            "mrms_rel_diag": surface["mrms"] / diag,
+            "surface_hausdorff_rel_diag": surface["surface_hausdorff"] / diag,
+            "normal_deviation_deg": surface["normal_deviation_deg"], "msdm": surface["msdm"]}
 
 
 def detect(suspect, original, material, params, detect_params):
@@ -599,13 +631,13 @@ def decode(estimate, specs, material, params, detect_params):
     """Correlate estimated differences with one key's sequences: bits, scores, p-value."""
     qs, energies = [], []
     for spec, delta in zip(specs, estimate["deltas"]):
-        q, energy = modulation.despread(delta, params.chip_rate, sequences(material, spec.index, params),
+        q, energy = modulation.despread(delta, chip_map(params), sequences(material, spec.index, params),
                                         chip_positions(material, spec.index, params))
         qs.append(q)
         energies.append(energy)
     coverage = [n / max(len(s.members), 1) for s, n in zip(specs, estimate["support"])]
-    z = modulation.combine_scores(np.array(qs), np.array(energies), coverage=coverage)
-    bits = (z > 0).astype(np.uint8)
+    z = modulation.combine_scores(np.array(qs), np.array(energies), coverage=coverage)   # per coded symbol
+    bits, margin = coding.decode_soft(z, params.total_bits, params.code)
     message = bits[: params.n_bits]
     crc_ok = None
     if params.crc_bits:
@@ -614,7 +646,7 @@ def decode(estimate, specs, material, params, detect_params):
     return {
         "message": modulation.bits_to_hex(message),
         "bits": message.tolist(),
-        "bit_scores": z[: params.n_bits].tolist(),
+        "bit_scores": margin[: params.n_bits].tolist(),
         "crc_ok": crc_ok,
         "p_value": p_value,
         "detected": bool(p_value < detect_params.p_threshold),

@@ -141,3 +141,23 @@ def test_the_command_line_pins_blas_and_openmp_to_one_thread():
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
     counts = json.loads(out.stdout)
     assert counts and all(n == 1 for n in counts)
+
+
+def test_embed_and_detect_with_the_convolutional_code(tmp_path, small_model, secret_env, capsys):
+    coded = [*SMALL, "--set", "code=convolutional"]
+    assert _embed(small_model, tmp_path / "out.ply", *coded, "--json") == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["params"]["code"] == "convolutional"
+    assert 0 < res["distortion"]["mrms_rel_diag"] <= res["distortion"]["rmse_rel_diag"] * (1 + 1e-6)
+    assert 0 <= res["distortion"]["msdm"] <= 1 and res["distortion"]["normal_deviation_deg"] > 0
+    assert main(["detect", str(tmp_path / "out.ply"), "--original", str(small_model), "--key-id", "k",
+                 "--json", *coded]) == 0
+    det = json.loads(capsys.readouterr().out)
+    assert det["detected"] and det["message"] == "c0ffee"
+
+
+def test_evaluate_only_an_unknown_experiment_is_exit_2(tmp_path, secret_env, capsys):
+    from tests.conftest import ROOT
+
+    assert main(["evaluate", str(ROOT / "configs" / "evaluate-small.yaml"), "--only", "no-such"]) == 2
+    assert "--only no-such: no such experiment" in capsys.readouterr().err

@@ -53,3 +53,12 @@ def test_a_secret_in_the_config_is_refused(tmp_path):
     f.write_text("key:\n  secret: hunter2\n")
     with pytest.raises(config.ConfigError, match="unknown key"):
         config.load_config(f)
+
+
+def test_a_code_longer_than_the_chips_is_refused_before_any_work(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("watermark:\n  code: convolutional\n  chip_rate: 2\n")
+    with pytest.raises(config.ConfigError, match="watermark.code: .*chip_rate to at least 3"):
+        config.load_config(path)
+    path.write_text("watermark:\n  code: convolutional\n  chip_rate: 3\n")
+    assert config.load_config(path)["watermark"]["code"] == "convolutional"

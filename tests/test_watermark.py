@@ -85,3 +85,26 @@ def test_the_cap_scales_a_cluster_as_a_whole():
     out = watermark.capped(moved, WatermarkParams(max_displacement=2.0))
     assert np.allclose(out, moved * 0.5)
     assert watermark.capped(moved, WatermarkParams()) is moved
+
+
+# -- the payload code (issue 14) -------------------------------------------------------------------------------
+
+def test_the_convolutional_code_spends_the_same_motion_and_decodes_where_repetition_errs(tile, reference):
+    rep, conv = PARAMS, replace(PARAMS, code="convolutional")
+    marks = {p.code: _embed(reference, p) for p in (rep, conv)}
+    rmse = {k: float(np.sqrt(((m - tile) ** 2).sum(axis=1).mean())) for k, m in marks.items()}
+    assert rmse["convolutional"] == pytest.approx(rmse["repetition"], rel=1e-9)   # +-alpha on every coefficient
+    diag = float(np.linalg.norm(tile.max(axis=0) - tile.min(axis=0)))
+    errors = {"repetition": 0, "convolutional": 0}
+    for seed in range(3):
+        noise = np.random.default_rng(seed).normal(0, 0.01 * diag / np.sqrt(3), tile.shape)
+        for p in (rep, conv):
+            found = _bits(reference, marks[p.code] + noise, p)
+            errors[p.code] += int((np.asarray(found["bits"]) != BITS).sum())
+            assert found["detected"]
+    assert errors["convolutional"] == 0 < errors["repetition"], errors
+
+
+def test_a_code_the_chips_cannot_carry_is_refused():
+    with pytest.raises(watermark.WatermarkError, match="chip_rate to at least 3"):
+        watermark.plan_clusters(np.zeros((10, 3)), replace(PARAMS, code="convolutional", chip_rate=2))

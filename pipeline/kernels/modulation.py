@@ -106,13 +106,23 @@ def chips(bits, chip_rate):
     Parameters
     ----------
     bits : (m,) {0, 1}
-    chip_rate : int
+        Payload bits, or the symbols of a coded word.
+    chip_rate : int or (n_chips,) int
+        c (each bit repeated c times, the paper's), or the symbol of every
+        chip (:func:`pipeline.kernels.coding.chip_groups`).
 
     Returns
     -------
-    (m * chip_rate,) float in {-1, +1}
+    (n_chips,) float in {-1, +1}, n_chips = m * c for an int chip rate
     """
-    return np.repeat(2.0 * np.asarray(bits, dtype=np.float64) - 1.0, chip_rate)
+    signs = 2.0 * np.asarray(bits, dtype=np.float64) - 1.0
+    return signs[_groups(chip_rate, len(signs))]
+
+
+def _groups(chip_rate, n_symbols):
+    if np.ndim(chip_rate) == 0:
+        return np.repeat(np.arange(n_symbols), int(chip_rate))
+    return np.asarray(chip_rate, dtype=np.int64)
 
 
 def spread(bits, chip_rate, sequences, amplitude, positions):
@@ -121,12 +131,13 @@ def spread(bits, chip_rate, sequences, amplitude, positions):
     Parameters
     ----------
     bits : (m,) {0, 1}
-    chip_rate : int
-    sequences : (3, m * chip_rate) {-1, +1}
+    chip_rate : int or (n_chips,) int
+        As in :func:`chips`.
+    sequences : (3, n_chips) {-1, +1}
         The key's sequence p_i for the spectral axes s, t, u (x, y, z).
     amplitude : float
         alpha = beta * phi.
-    positions : (m * chip_rate,) int
+    positions : (n_chips,) int
         Coefficient index of each chip (the layout).
 
     Returns
@@ -146,23 +157,27 @@ def despread(delta, chip_rate, sequences, positions):
     ----------
     delta : (n_coefficients, 3) float
         Estimated coefficient differences r-hat - r.
-    chip_rate : int
-    sequences : (3, m * chip_rate)
-    positions : (m * chip_rate,) int
+    chip_rate : int or (n_chips,) int
+        As in :func:`chips`; an int means m = n_chips / c symbols.
+    sequences : (3, n_chips)
+    positions : (n_chips,) int
 
     Returns
     -------
     q : (m,) float
-        q_j of equation 5 (sign gives the bit).
+        q_j of equation 5 (sign gives the bit or symbol).
     energy : (m,) float
         Sum of squared differences that q_j sums over; under "no watermark of
         this key", q_j * 3 has mean 0 and variance ``energy`` given the data.
     """
-    d = delta[positions, :].T  # (3, m*c)
-    m = d.shape[1] // chip_rate
-    products = (d * sequences).reshape(3, m, chip_rate)
-    q = products.sum(axis=(0, 2)) / 3.0
-    energy = (d**2).reshape(3, m, chip_rate).sum(axis=(0, 2))
+    d = delta[positions, :].T  # (3, n_chips)
+    if np.ndim(chip_rate) == 0:
+        m = d.shape[1] // int(chip_rate)
+    else:
+        m = int(np.max(chip_rate)) + 1
+    groups = _groups(chip_rate, m)
+    q = np.bincount(groups, weights=(d * sequences).sum(axis=0), minlength=m) / 3.0
+    energy = np.bincount(groups, weights=(d**2).sum(axis=0), minlength=m)
     return q, energy
 
 

@@ -43,7 +43,7 @@ def parse_chain(text):
 def method_params(method, params, detect_params):
     """(WatermarkParams, DetectParams) of an evaluation method.
 
-    ``paper``: the paper's embedding (xyz displacement, consecutive chips),
+    ``paper``: the paper's embedding (xyz displacement, consecutive chips, repetition),
     covariance registration and nearest-point resampling; ``robust``: the
     config as given; ``robust-xyz``: the config's detection on the paper's
     embedding.
@@ -51,7 +51,7 @@ def method_params(method, params, detect_params):
     if method == "robust":
         return params, detect_params
     paper_embedding = replace(params, displacement="xyz", chip_layout="consecutive", amplitude="model",
-                              max_displacement=None)
+                              max_displacement=None, code="repetition")
     if method == "paper":
         return paper_embedding, replace(detect_params, registration="paper", correspondence="paper")
     return paper_embedding, detect_params
@@ -59,7 +59,7 @@ def method_params(method, params, detect_params):
 
 def _basis_params(params, n_coefficients):
     """Parameters whose reference holds ``n_coefficients`` vectors (one basis serves every c and m)."""
-    return replace(params, chip_rate=1, n_bits=n_coefficients, crc_bits=0, first_coefficient=0)
+    return replace(params, chip_rate=1, n_bits=n_coefficients, crc_bits=0, first_coefficient=0, code="repetition")
 
 
 def prepare_bases(model_path, params, store):
@@ -111,8 +111,9 @@ def trial(model_path, cache_path, params, detect_params, chain_text, method, see
         "bit_errors": errors, "ber": errors / params.n_bits, "detected": result["detected"],
         "p_value": result["p_value"], "min_abs_score": float(np.min(np.abs(result["bit_scores"]))),
         "registration_fitness": result["registration"]["fitness"],
-        "displacement": params.displacement, "rmse_rel_diag": dist["rmse_rel_diag"],
-        "hausdorff_rel_diag": dist["hausdorff_rel_diag"], "surface_rmse_rel_diag": dist["surface_rmse_rel_diag"],
+        "displacement": params.displacement,
+        **dist, "code": params.code, "chip_layout": params.chip_layout,
+        "message_error": bool(errors > 0),
         "seconds_embed": t1 - t0, "seconds_attack": t2 - t1, "seconds_detect": time.perf_counter() - t2,
     }
 

@@ -1,0 +1,78 @@
+import itertools
+
+import numpy as np
+import pytest
+
+from pipeline.kernels import coding
+
+
+def _codebook(n_bits):
+    words = np.array(list(itertools.product([0, 1], repeat=n_bits)), dtype=np.uint8)
+    return words, np.stack([coding.encode(w, "convolutional") for w in words]).astype(np.float64) * 2 - 1
+
+
+def test_the_encoder_is_the_k7_171_133_code():
+    # impulse response of a single 1: the generators' taps, interleaved, then zeros
+    word = coding.encode([1, 0, 0, 0, 0, 0, 0], "convolutional")
+    g1 = [int(b) for b in format(0o171, "07b")]
+    g2 = [int(b) for b in format(0o133, "07b")]
+    assert word[:14].tolist() == [b for pair in zip(g1, g2) for b in pair]
+    assert not word[14:].any()
+    assert len(word) == coding.coded_length(7, "convolutional") == 2 * (7 + 6)
+
+
+def test_free_distance_is_10():
+    _, book = _codebook(8)
+    weights = ((book[1:] + 1) / 2).sum(axis=1)   # the all-zero word is word 0; linear code
+    assert weights.min() == 10
+
+
+@pytest.mark.parametrize("sigma", [0.6, 1.0, 1.6])
+def test_soft_decoding_is_maximum_likelihood_with_max_log_margins(sigma):
+    words, book = _codebook(8)
+    rng = np.random.default_rng(int(sigma * 10))
+    for _ in range(20):
+        sent = words[rng.integers(len(words))]
+        z = (2.0 * coding.encode(sent, "convolutional") - 1) + rng.normal(0, sigma, book.shape[1])
+        bits, margin = coding.decode_soft(z, 8, "convolutional")
+        metric = book @ z
+        assert bits.tolist() == words[np.argmax(metric)].tolist()
+        for j in range(8):   # max-log-MAP: half the best metric with the bit at 1 minus with it at 0
+            best = [metric[words[:, j] == v].max() for v in (0, 1)]
+            assert margin[j] == pytest.approx(0.5 * (best[1] - best[0]), abs=1e-9)
+
+
+def test_the_code_beats_repetition_at_equal_energy():
+    # 32 bits on 320 unit-energy chips under the same noise: repetition sums 10
+    # chips per bit; the code gives 76 symbols 4 or 5 chips each.
+    rng = np.random.default_rng(7)
+    n_bits, chips, sigma, trials = 32, 320, 1.6, 200
+    groups = coding.chip_groups(coding.coded_length(n_bits, "convolutional"), chips)
+    errors = {"repetition": 0, "convolutional": 0}
+    for _ in range(trials):
+        bits = rng.integers(0, 2, n_bits)
+        for code in errors:
+            word = coding.encode(bits, code)
+            g = np.repeat(np.arange(n_bits), 10) if code == "repetition" else groups
+            received = (2.0 * word[g] - 1) + rng.normal(0, sigma, chips)
+            sums = np.bincount(g, weights=received)
+            z = sums / (sigma * np.sqrt(np.bincount(g)))
+            decoded, _ = coding.decode_soft(z, n_bits, code)
+            errors[code] += int((decoded != bits).any())
+    assert errors["repetition"] > trials // 4 and errors["convolutional"] * 10 < errors["repetition"], errors
+
+
+def test_chip_groups_share_chips_evenly_and_reduce_to_repetition():
+    g = coding.chip_groups(76, 320)
+    counts = np.bincount(g)
+    assert len(counts) == 76 and set(counts.tolist()) <= {4, 5} and counts.sum() == 320
+    assert np.array_equal(coding.chip_groups(32, 320), np.repeat(np.arange(32), 10))
+    with pytest.raises(ValueError, match="chip_rate"):
+        coding.chip_groups(76, 64)
+
+
+def test_wrong_lengths_and_names_are_refused():
+    with pytest.raises(ValueError, match="scores"):
+        coding.decode_soft(np.zeros(10), 8, "convolutional")
+    with pytest.raises(ValueError, match="unknown code"):
+        coding.encode([1, 0], "turbo")
