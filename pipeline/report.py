@@ -149,21 +149,35 @@ def variant(row):
     return f"{row['displacement']}, {row.get('code', 'repetition')}, robust detector"
 
 
+PAPER_BETA = 0.002
+_CURVE = ("method", "displacement", "code", "chip_layout", "chip_rate")
+
+
 def rate_distortion_curves(rows):
-    """{(model, attack): {variant: (distance, ber, mer, trials) arrays by beta}}, distance = MRMS / diag."""
-    rd = [r for r in rows if r["experiment"] == RATE_DISTORTION]
+    """{(model, attack): {variant: (distance, ber, mer, trials, beta) arrays by beta}}, distance = MRMS / diag."""
+    rd = [{"code": "repetition", "chip_layout": None, **r} for r in rows if r["experiment"] == RATE_DISTORTION]
     distance = {k: np.mean([r["mrms_rel_diag"] for r in rs])
-                for k, rs in _group(rd, ("model", "method", "displacement", "code", "beta")).items()}
+                for k, rs in _group(rd, ("model", *_CURVE, "beta")).items()}
     curves = defaultdict(dict)
     for (model, attack), rs in _group(rd, ("model", "attack")).items():
-        for label, vs in _group(rs, ("method", "displacement", "code")).items():
+        for label, vs in _group(rs, _CURVE).items():
             cells = sorted(_group(vs, ("beta",)).items())
             x = np.array([distance[(model, *label, b)] for (b,), _ in cells])
             ber = np.array([np.mean([r["ber"] for r in c]) for _, c in cells])
             mer = np.array([np.mean([r["message_error"] for r in c]) for _, c in cells])
             n = np.array([len(c) for _, c in cells])
-            curves[(model, attack)][variant(vs[0])] = (x, ber, mer, n)
+            name = variant(vs[0])
+            if label[4] != 10 or name in curves[(model, attack)]:
+                name += f", c = {label[4]}, {label[3]}"
+            curves[(model, attack)][name] = (x, ber, mer, n, np.array([b for (b,), _ in cells]))
     return curves
+
+
+def _paper_distance(curve):
+    """Distance of the paper's embedding at the paper's beta (the middle point if it was not run)."""
+    x, beta = curve[0], curve[4]
+    at = np.flatnonzero(np.isclose(beta, PAPER_BETA))
+    return float(x[at[0]]) if len(at) else float(np.median(x))
 
 
 def _at(curve, x0):
@@ -185,27 +199,28 @@ def plot_rate_distortion(rows, folder):
     paths = []
     for model in sorted({m for m, _ in curves}):
         attacks = sorted(a for m, a in curves if m == model)
+        colours = {v: f"C{i}" for i, v in enumerate(sorted({v for a in attacks for v in curves[(model, a)]}))}
         fig, axes = plt.subplots(2, len(attacks), figsize=(4.2 * len(attacks), 7), squeeze=False, sharex=True)
         for col, attack in enumerate(attacks):
-            for i, (label, (x, ber, mer, n)) in enumerate(sorted(curves[(model, attack)].items())):
+            for label, (x, ber, mer, n, _) in sorted(curves[(model, attack)].items()):
                 for row, y in ((0, ber), (1, mer)):
-                    axes[row, col].plot(100 * x, y, marker="o", color=f"C{i}", label=label)
+                    axes[row, col].plot(100 * x, y, marker="o", color=colours[label], label=label)
             paper = curves[(model, attack)].get("paper embedding, paper detector")
             for row in (0, 1):
                 ax = axes[row, col]
                 if paper is not None:
-                    ax.axvline(100 * np.median(paper[0]), color="grey", ls=":", lw=1)
+                    ax.axvline(100 * _paper_distance(paper), color="grey", ls=":", lw=1)
                 ax.set_xscale("log")
                 ax.xaxis.set_major_formatter(plt.matplotlib.ticker.FormatStrFormatter("%.3g"))
-                ax.xaxis.set_minor_formatter(plt.matplotlib.ticker.FormatStrFormatter("%.3g"))
-                ax.set_ylim(-0.03, 1.03 if row else 0.6)
+                ax.xaxis.set_minor_formatter(plt.matplotlib.ticker.NullFormatter())
+                ax.set_ylim(-0.03, 1.03 if row else 0.7)
                 ax.grid(alpha=0.3, which="both")
             axes[0, col].set_title(attack, fontsize=10)
             axes[1, col].set_xlabel("MRMS distance to the surface (% of diagonal)")
         axes[0, 0].set_ylabel("bit error rate")
         axes[1, 0].set_ylabel("message error rate (any bit wrong)")
-        handles, labels = axes[0, 0].get_legend_handles_labels()
-        fig.legend(handles, labels, loc="upper center", ncol=2, fontsize=8, bbox_to_anchor=(0.5, 0.965))
+        handles = [plt.matplotlib.lines.Line2D([], [], color=c, marker="o") for c in colours.values()]
+        fig.legend(handles, list(colours), loc="upper center", ncol=2, fontsize=8, bbox_to_anchor=(0.5, 0.965))
         fig.suptitle(f"{model}: rate-distortion at equal detector (dotted: the paper's beta 0.002)", y=0.995,
                      fontsize=10)
         fig.tight_layout(rect=(0, 0, 1, 0.89))
@@ -221,21 +236,25 @@ def rate_distortion_lines(rows):
     curves = rate_distortion_curves(rows)
     if not curves:
         return []
-    table, worse = [], []
+    table, worse, compared, apart = [], [], 0, []
     for (model, attack), by in sorted(curves.items()):
         paper = by.get("paper embedding, paper detector")
         if paper is None:
             continue
-        x0 = float(np.median(paper[0]))
-        for label, (x, ber, mer, n) in sorted(by.items()):
+        x0 = _paper_distance(paper)
+        for label, (x, ber, mer, n, _) in sorted(by.items()):
             table.append([model, attack, label, f"{100 * x0:.4f}", f"{_at((x, ber), x0):.3f}",
                           f"{_at((x, mer), x0):.2f}", int(n.min())])
-            if "robust detector" in label:
-                for xp, mp in zip(paper[0], paper[2]):
-                    m = _at((x, mer), xp)
-                    if np.isfinite(m) and m > mp + 1e-9:
-                        worse.append(f"{model}, {attack}, {label}: {m:.2f} against {mp:.2f} at "
-                                     f"{100 * xp:.4f} %")
+            if "robust detector" not in label:
+                continue
+            for xp, mp in zip(paper[0], paper[2]):
+                m = _at((x, mer), xp)
+                if not np.isfinite(m):
+                    apart.append(f"{model}, {attack}, {label} at {100 * xp:.4f} % (paper: {mp:.2f})")
+                    continue
+                compared += 1
+                if m > mp + 1e-9:
+                    worse.append(f"{model}, {attack}, {label}: {m:.2f} against {mp:.2f} at {100 * xp:.4f} %")
     return ["## Rate-distortion", "",
             "Each curve is one embedding with one detector, beta swept on a sqrt(3) ladder; distance is the "
             "MRMS between the surfaces (local tangent planes, both ways). Values at the paper's distance (its "
@@ -243,8 +262,10 @@ def rate_distortion_lines(rows):
             "curve's range). Message error rate: share of trials with any payload bit wrong.", "",
             _md_table(["model", "attack", "embedding, detector", "distance (% diag)", "BER", "message error rate",
                        "trials per point"], table), "",
-            "Where a robust-detector curve has a higher message error rate than the paper's at one of the "
-            "paper's distortions: " + ("; ".join(worse) if worse else "nowhere."), ""]
+            f"Robust-detector curves against the paper's at each of the paper's distortions: {compared} "
+            "comparisons inside both curves' ranges; higher message error rate than the paper's: "
+            + ("; ".join(worse) if worse else "nowhere") + ".",
+            "", "Outside a curve's range (not compared): " + ("; ".join(apart) if apart else "none") + ".", ""]
 
 
 def _md_table(header, rows):
@@ -317,7 +338,8 @@ def write_report(folder, rows, fp_rows, p_threshold, seconds, fingerprint_rows=(
             curve.append([method, beta, c, f"{100 * s:.2f} %", f"{np.mean([r['ber'] for r in rs]):.3f}", len(rs)])
         lines += ["## BER against noise (Figure 8)", "",
                   _md_table(["method", "beta", "c", "noise", "mean BER", "runs"], curve), ""]
-    dist = _group(rows, ("model", "n_clusters", "beta", "chip_rate", "displacement"))
+    dist = _group([{"code": "repetition", **r} for r in rows],
+                  ("model", "n_clusters", "beta", "chip_rate", "displacement", "code"))
     measures = ("rmse_rel_diag", "hausdorff_rel_diag", "surface_rmse_rel_diag", "mrms_rel_diag",
                 "surface_hausdorff_rel_diag")
 
@@ -330,7 +352,7 @@ def write_report(folder, rows, fp_rows, p_threshold, seconds, fingerprint_rows=(
               "tangent planes of the original (one way); MRMS and surface Hausdorff: between the two "
               "surfaces (tangent planes of each, both ways, the larger); normal deviation in degrees; "
               "MSDM-style roughness distance (0: same roughness).", "", _md_table(
-                  ["model", "clusters", "beta", "c", "displacement", "RMSE (% diag)", "Hausdorff (% diag)",
+                  ["model", "clusters", "beta", "c", "displacement", "code", "RMSE (% diag)", "Hausdorff (% diag)",
                    "surface RMS (% diag)", "MRMS (% diag)", "surface Hausdorff (% diag)", "normal dev. (deg)",
                    "MSDM"],
                   [[*key, *[mean(rs, k, 100) for k in measures], mean(rs, "normal_deviation_deg", 1),

@@ -417,7 +417,7 @@ def modulate_cluster(basis, cluster_index, material, bits, amplitude, params, no
     # not change it), and no point moves farther than the paper's embedding
     # of this payload would have moved one.
     paper = moved
-    if params.chip_layout != "consecutive":
+    if params.chip_layout != "consecutive" or params.code != "repetition":
         paper = modulate_cluster(basis, cluster_index, material, bits, amplitude,
                                  replace(params, displacement="xyz", chip_layout="consecutive",
                                          code="repetition"))
@@ -505,7 +505,7 @@ def capped(moved, params):
     return moved if peak <= cap else moved * (cap / peak)
 
 
-def distortion(original, watermarked, tree=None, normals=None):
+def distortion(original, watermarked, tree=None, normals=None, side=None):
     """Distortion metrics relative to the bbox diagonal.
 
     RMSE of the point displacements (same order) and the symmetric Hausdorff
@@ -523,6 +523,9 @@ def distortion(original, watermarked, tree=None, normals=None):
         Of ``original`` (saves its construction when many copies are measured).
     normals : (n, 3) float, optional
         Unit normals of ``original`` at every point.
+    side : dict, optional
+        :func:`pipeline.kernels.distortion.original_side` of ``original``
+        (saves recomputing it for every copy of one original).
 
     Returns
     -------
@@ -530,14 +533,14 @@ def distortion(original, watermarked, tree=None, normals=None):
     mrms_rel_diag, surface_hausdorff_rel_diag, normal_deviation_deg, msdm
     """
     diag = _diag(original)
-    tree = tree or cKDTree(original)
+    tree = side["tree"] if side else (tree or cKDTree(original))
     rmse = float(np.sqrt(((watermarked - original) ** 2).sum(axis=1).mean()))
     d1, nearest = tree.query(watermarked)
     d2, _ = cKDTree(watermarked).query(original)
-    if normals is None:
-        normals = resampling.estimate_normals(original)
+    side = side or surface_measures.original_side(original, tree=tree, normals=normals)
+    normals = side["normals"]
     plane = np.einsum("ni,ni->n", watermarked - original[nearest], normals[nearest])
-    surface = surface_measures.surface_distortion(original, watermarked, tree=tree, normals=normals)
+    surface = surface_measures.surface_distortion(original, watermarked, side)
     return {"rmse_rel_diag": rmse / diag, "hausdorff_rel_diag": float(max(d1.max(), d2.max())) / diag,
             "surface_rmse_rel_diag": float(np.sqrt((plane**2).mean())) / diag,
             "mrms_rel_diag": surface["mrms"] / diag,
@@ -643,6 +646,12 @@ def decode(estimate, specs, material, params, detect_params):
     if params.crc_bits:
         crc_ok = bool(np.array_equal(modulation.crc_bits(message, params.crc_bits), bits[params.n_bits:]))
     p_value = modulation.p_value_present(z)
+    if params.code != "repetition":
+        # a coded word spreads the energy over more symbols than bits, which the
+        # chi-square test pays for; the decoded word's correlation does not.
+        # Bonferroni over the two tests keeps the p-value valid.
+        word = coding.encode(bits, params.code)
+        p_value = min(1.0, 2.0 * min(p_value, modulation.p_value_codeword(z, word, params.total_bits)))
     return {
         "message": modulation.bits_to_hex(message),
         "bits": message.tolist(),

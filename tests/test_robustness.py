@@ -100,3 +100,21 @@ def test_unmarked_original_and_wrong_key_are_not_watermarked(model, prepared):
         material = keys.derive_key_material(secret, "robustness")
         result = decode(estimate, specs, material, params, dparams)
         assert not result["detected"] and result["p_value"] > 1e-4
+
+
+# -- the rate-distortion winner (issue 14) ----------------------------------------------------------------------
+EQUAL = config.load_config(ROOT / "configs" / "equal-distortion.yaml")
+
+
+@pytest.mark.parametrize("model", list(MODELS))
+def test_at_the_papers_distance_the_coded_embedding_survives_noise_1_percent(model, prepared):
+    path, cache, params = prepared[model]
+    winner = replace(config.watermark_params(EQUAL), **MODELS[model])
+    assert winner.code == "convolutional" and winner.beta == pytest.approx(0.002 / np.sqrt(3), rel=0.01)
+    paper = evaluate.trial(path, cache, replace(params, beta=0.002), config.detect_params(EQUAL), "none",
+                           "paper", 7, MATERIAL)
+    row = evaluate.trial(path, cache, winner, config.detect_params(EQUAL), "noise:1%", "robust", 7, MATERIAL)
+    assert row["mrms_rel_diag"] == pytest.approx(paper["mrms_rel_diag"], rel=0.06)   # the paper's distance
+    assert row["rmse_rel_diag"] < 0.65 * paper["rmse_rel_diag"]
+    assert row["bit_errors"] == 0, row
+    assert row["detected"] and row["p_value"] < 1e-6

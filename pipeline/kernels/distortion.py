@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["local_planes", "to_surface", "msdm", "surface_distortion"]
+__all__ = ["local_planes", "to_surface", "msdm", "original_side", "surface_distortion"]
 
 
 def local_planes(points, queries, k=16, tree=None):
@@ -79,8 +79,8 @@ def msdm(original_variation, marked_variation, windows):
     Parameters
     ----------
     original_variation, marked_variation : (n,) float
-    windows : (n, w) int
-        Neighbourhood of each point (indices into the fields).
+    windows : (c, w) int
+        Neighbourhoods (indices into the fields), one per window centre.
 
     Returns
     -------
@@ -99,41 +99,65 @@ def msdm(original_variation, marked_variation, windows):
     return float(np.cbrt((local**3).mean()))
 
 
-def surface_distortion(original, marked, k=16, window=64, tree=None, normals=None):
-    """MRMS, surface Hausdorff, normal deviation and MSDM of a marked copy.
+def original_side(original, k=16, window=64, tree=None, normals=None, max_windows=20_000):
+    """What :func:`surface_distortion` needs of the original, computed once for many copies.
 
     Parameters
     ----------
     original : (n, 3) float
-    marked : (m, 3) float, any order and count (a copy, same frame)
     k : int
         Points per local plane.
     window : int
         Points per MSDM window.
     tree : cKDTree of ``original``, optional
     normals : (n, 3) float, optional
-        Unit normals of ``original`` from ``k`` neighbours (saves computing them).
+        Unit normals of ``original`` from ``k`` neighbours.
+    max_windows : int
+        MSDM windows are centred on at most this many points (an even stride
+        through the file), so memory stays bounded on large scenes.
+
+    Returns
+    -------
+    dict: tree, normals (n, 3), variation (n,), centres (w,), windows (w, window)
+    """
+    tree = tree or cKDTree(original)
+    _, fitted, variation = local_planes(original, original, k, tree)
+    centres = np.arange(0, len(original), max(1, -(-len(original) // max_windows)))
+    _, windows = tree.query(original[centres], k=min(window, len(original)))
+    return {"tree": tree, "normals": fitted if normals is None else normals, "variation": variation,
+            "centres": centres, "windows": windows.reshape(len(centres), -1), "k": k}
+
+
+def surface_distortion(original, marked, side=None):
+    """MRMS, surface Hausdorff, normal deviation and MSDM of a marked copy.
+
+    Parameters
+    ----------
+    original : (n, 3) float
+    marked : (m, 3) float, any order and count (a copy, same frame)
+    side : dict, optional
+        :func:`original_side` of ``original`` (computed when not given).
 
     Returns
     -------
     dict
         mrms, surface_hausdorff (in the points' units), normal_deviation_deg, msdm.
     """
-    tree = tree or cKDTree(original)
+    side = side or original_side(original)
+    tree, n_orig, k = side["tree"], side["normals"], side["k"]
     marked_tree = cKDTree(marked)
-    _, n_fit, v_orig = local_planes(original, original, k, tree)
-    n_orig = n_fit if normals is None else normals
     _, n_marked, v_marked = local_planes(marked, marked, k, marked_tree)
     forward = to_surface(marked, original, n_orig, tree)
     backward = to_surface(original, marked, n_marked, marked_tree)
     _, near = tree.query(marked)
-    cosine = np.clip(np.abs(np.einsum("ni,ni->n", n_marked, n_orig[near])), 0.0, 1.0)
+    # the angle from atan2 of |cross| and |dot|: exact 0 for equal normals, unlike arccos near 1
+    a, b = n_marked, n_orig[near]
+    angle = np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), np.abs(np.einsum("ni,ni->n", a, b)))
     # roughness of the copy carried onto the original's points (nearest marked point)
     _, back = marked_tree.query(original)
-    _, windows = tree.query(original, k=min(window, len(original)))
     return {
         "mrms": float(max(np.sqrt((forward**2).mean()), np.sqrt((backward**2).mean()))),
         "surface_hausdorff": float(max(forward.max(), backward.max())),
-        "normal_deviation_deg": float(np.degrees(np.arccos(cosine)).mean()),
-        "msdm": msdm(v_orig, v_marked[back], windows.reshape(len(original), -1)),
+        "normal_deviation_deg": float(np.degrees(angle).mean()),
+        "msdm": msdm(side["variation"], v_marked[back], side["windows"]),
     }

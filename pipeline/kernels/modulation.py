@@ -23,7 +23,7 @@ from scipy import special
 
 __all__ = [
     "hex_to_bits", "bits_to_hex", "crc_bits", "chips", "spread", "despread",
-    "combine_scores", "p_value_present", "p_value_payload", "along_normals",
+    "combine_scores", "p_value_present", "p_value_payload", "p_value_codeword", "along_normals",
 ]
 
 _CRC_POLYS = {8: 0x07, 16: 0x1021}
@@ -230,6 +230,30 @@ def p_value_payload(z, bits):
     """
     signs = 2.0 * np.asarray(bits, dtype=np.float64) - 1.0
     return float(0.5 * special.erfc(float(z @ signs) / np.sqrt(2.0 * len(z))))  # normal survival
+
+
+def p_value_codeword(z, word, n_bits):
+    """p-value of "a watermark of this key is present", from the decoded codeword.
+
+    The correlation of the symbol scores with the re-encoded decoded word,
+    sum(z_k c_k) / sqrt(n), is N(0, 1) under the null for any one codeword;
+    the decoder picked the best of 2^n_bits, so the union bound multiplies
+    the tail by 2^n_bits.  Where a code spreads the energy over more symbols
+    than bits, this sees the mark with less energy than the chi-square test.
+
+    Parameters
+    ----------
+    z : (n,) float
+        Symbol scores.
+    word : (n,) {0, 1}
+        The decoded word, re-encoded.
+    n_bits : int
+        Payload bits (CRC included): the decoder chose among 2^n_bits words.
+    """
+    signs = 2.0 * np.asarray(word, dtype=np.float64) - 1.0
+    t = float(np.asarray(z, dtype=np.float64) @ signs) / np.sqrt(len(signs))
+    log_tail = special.log_ndtr(-t) + n_bits * np.log(2.0)
+    return float(min(1.0, np.exp(log_tail)))
 
 
 def along_normals(displacement, normals, cap=None, iterations=60):

@@ -23,8 +23,9 @@ from .. import config as config_mod
 from ..io.pointcloud import atomic_write_bytes, read_points
 from ..kernels import fingerprint, keys, modulation
 from ..surface import apply_chain, parse_attack
-from ..watermark import (ClusterSpec, Reference, decode, distortion, embed_with_bases, estimate_differences,
-                        fingerprint_displacement, fingerprint_length, fingerprint_observation)
+from ..watermark import (ClusterSpec, Reference, check_code, decode, distortion, embed_with_bases,
+                        estimate_differences, fingerprint_displacement, fingerprint_length,
+                        fingerprint_observation)
 
 __all__ = ["run_evaluation", "parse_chain", "trial", "prepare_bases", "load_bases", "fingerprint_trial",
            "parse_case"]
@@ -266,9 +267,14 @@ def _cells(cfg, collusion):
             continue
         for model in exp["models"]:
             for overrides in exp.get("parameters") or [{}]:
+                params = replace(base, **overrides)
+                try:                    # fail before any work, not in every trial
+                    check_code(params)
+                except ValueError as exc:
+                    raise config_mod.ConfigError(f"evaluate.experiments {exp['name']}: {exc}") from None
                 for chain in exp["attacks"]:
                     parse_chain(chain)  # fail early on a typo
-                    yield exp, model, replace(base, **overrides), chain, exp.get("repetitions", ev["repetitions"])
+                    yield exp, model, params, chain, exp.get("repetitions", ev["repetitions"])
 
 
 def plan_trials(cfg):

@@ -86,12 +86,14 @@ class Job:
 # Fields added after a ledger format was first written: left out of the
 # generation id at their defaults, so a rerun of an older ledger with an
 # unchanged config stays in its generation
-_LATER_DEFAULTS = {"amplitude": "model", "max_displacement": None, "code": "repetition"}
+_LATER_DEFAULTS = {"amplitude": "model", "max_displacement": None}
+# Issued copies carry recipient fingerprints, not the message: its channel code changes no copy.
+_NOT_IN_COPIES = ("code",)
 
 
 def _generation_id(params, key_id, fingerprint, source_sha256):
     record = {k: v for k, v in params_record(params).items()
-              if not (k in _LATER_DEFAULTS and v == _LATER_DEFAULTS[k])}
+              if k not in _NOT_IN_COPIES and not (k in _LATER_DEFAULTS and v == _LATER_DEFAULTS[k])}
     text = json.dumps({"params": record, "key_id": key_id, "fp": fingerprint, "mark": MARK,
                        "source": source_sha256, "version": __version__}, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:16]

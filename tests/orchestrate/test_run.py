@@ -99,6 +99,9 @@ def test_a_rerun_issues_nothing_and_an_added_recipient_costs_one_copy(tmp_path):
     assert sorted(set(new) - set(outputs)) == ["carol/asset-0.ply", "carol/asset-1.pcd"]
     rows = _rows(job)
     assert len(rows) == 6 and len({(r["asset_key"], r["recipient"]) for r in rows}) == 6
+    # each copy carries its distortion as the field measures it
+    assert all(0 < r["mrms_rel_diag"] < 0.01 and r["surface_hausdorff_rel_diag"] >= r["mrms_rel_diag"]
+               and r["normal_deviation_deg"] > 0 and 0 <= r["msdm"] <= 1 for r in rows)
 
 
 def test_a_changed_parameter_starts_generation_2_and_generation_1_stays_attributable(tmp_path, monkeypatch):
@@ -373,3 +376,5 @@ def test_a_new_amplitude_rule_or_cap_is_a_new_generation():
     base = _generation_id(WatermarkParams(), "k", "f" * 16, "s" * 64)
     assert _generation_id(WatermarkParams(amplitude="cluster"), "k", "f" * 16, "s" * 64) != base
     assert _generation_id(replace(WatermarkParams(), max_displacement=0.01), "k", "f" * 16, "s" * 64) != base
+    # the message's channel code changes no fingerprinted copy: same generation
+    assert _generation_id(WatermarkParams(code="convolutional"), "k", "f" * 16, "s" * 64) == base
