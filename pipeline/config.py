@@ -333,7 +333,7 @@ def validate(cfg, source="config"):
     try:
         if isinstance(cfg.get("watermark"), dict):
             check_code(watermark_params(cfg))
-    except (ValueError, TypeError) as exc:
+    except ValueError as exc:
         raise ConfigError(f"{source}: watermark.code: {exc}") from None
 
 

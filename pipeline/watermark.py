@@ -15,8 +15,9 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .kernels import (clustering, coding, digest, fingerprint, graph, keys, modulation, registration, resampling,
+                      spectral)
 from .kernels import distortion as surface_measures
-from .kernels import clustering, coding, digest, fingerprint, graph, keys, modulation, registration, resampling, spectral
 
 __all__ = [
     "WatermarkParams", "DetectParams", "Frame", "ClusterSpec", "frame_of", "plan_clusters",
@@ -505,7 +506,7 @@ def capped(moved, params):
     return moved if peak <= cap else moved * (cap / peak)
 
 
-def distortion(original, watermarked, tree=None, normals=None, side=None):
+def distortion(original, watermarked, side=None):
     """Distortion metrics relative to the bbox diagonal.
 
     RMSE of the point displacements (same order) and the symmetric Hausdorff
@@ -519,10 +520,6 @@ def distortion(original, watermarked, tree=None, normals=None, side=None):
     Parameters
     ----------
     original, watermarked : (n, 3) float
-    tree : scipy.spatial.cKDTree, optional
-        Of ``original`` (saves its construction when many copies are measured).
-    normals : (n, 3) float, optional
-        Unit normals of ``original`` at every point.
     side : dict, optional
         :func:`pipeline.kernels.distortion.original_side` of ``original``
         (saves recomputing it for every copy of one original).
@@ -533,16 +530,10 @@ def distortion(original, watermarked, tree=None, normals=None, side=None):
     mrms_rel_diag, surface_hausdorff_rel_diag, normal_deviation_deg, msdm
     """
     diag = _diag(original)
-    tree = side["tree"] if side else (tree or cKDTree(original))
     rmse = float(np.sqrt(((watermarked - original) ** 2).sum(axis=1).mean()))
-    d1, nearest = tree.query(watermarked)
-    d2, _ = cKDTree(watermarked).query(original)
-    side = side or surface_measures.original_side(original, tree=tree, normals=normals)
-    normals = side["normals"]
-    plane = np.einsum("ni,ni->n", watermarked - original[nearest], normals[nearest])
     surface = surface_measures.surface_distortion(original, watermarked, side)
-    return {"rmse_rel_diag": rmse / diag, "hausdorff_rel_diag": float(max(d1.max(), d2.max())) / diag,
-            "surface_rmse_rel_diag": float(np.sqrt((plane**2).mean())) / diag,
+    return {"rmse_rel_diag": rmse / diag, "hausdorff_rel_diag": surface["hausdorff"] / diag,
+            "surface_rmse_rel_diag": surface["surface_rms_forward"] / diag,
             "mrms_rel_diag": surface["mrms"] / diag,
             "surface_hausdorff_rel_diag": surface["surface_hausdorff"] / diag,
             "normal_deviation_deg": surface["normal_deviation_deg"], "msdm": surface["msdm"]}

@@ -55,7 +55,7 @@ def local_planes(points, queries, k=16, tree=None):
     return centroids, vectors[:, :, 0], variation
 
 
-def to_surface(queries, points, normals, tree=None):
+def to_surface(queries, points, normals, nearest):
     """Distance of each query to the tangent plane of its nearest point of ``points``.
 
     Parameters
@@ -63,14 +63,14 @@ def to_surface(queries, points, normals, tree=None):
     queries : (m, 3) float
     points : (n, 3) float
     normals : (n, 3) float, unit, of ``points``
-    tree : cKDTree of ``points``, optional
+    nearest : (m,) int
+        Index of each query's nearest point.
 
     Returns
     -------
     (m,) float
     """
-    _, near = (tree or cKDTree(points)).query(queries)
-    return np.abs(np.einsum("ni,ni->n", queries - points[near], normals[near]))
+    return np.abs(np.einsum("ni,ni->n", queries - points[nearest], normals[nearest]))
 
 
 def msdm(original_variation, marked_variation, windows):
@@ -99,7 +99,7 @@ def msdm(original_variation, marked_variation, windows):
     return float(np.cbrt((local**3).mean()))
 
 
-def original_side(original, k=16, window=64, tree=None, normals=None, max_windows=20_000):
+def original_side(original, k=16, window=64, max_windows=20_000):
     """What :func:`surface_distortion` needs of the original, computed once for many copies.
 
     Parameters
@@ -109,27 +109,24 @@ def original_side(original, k=16, window=64, tree=None, normals=None, max_window
         Points per local plane.
     window : int
         Points per MSDM window.
-    tree : cKDTree of ``original``, optional
-    normals : (n, 3) float, optional
-        Unit normals of ``original`` from ``k`` neighbours.
     max_windows : int
         MSDM windows are centred on at most this many points (an even stride
         through the file), so memory stays bounded on large scenes.
 
     Returns
     -------
-    dict: tree, normals (n, 3), variation (n,), centres (w,), windows (w, window)
+    dict: tree, normals (n, 3), variation (n,), windows (w, window), k
     """
-    tree = tree or cKDTree(original)
-    _, fitted, variation = local_planes(original, original, k, tree)
+    tree = cKDTree(original)
+    _, normals, variation = local_planes(original, original, k, tree)
     centres = np.arange(0, len(original), max(1, -(-len(original) // max_windows)))
     _, windows = tree.query(original[centres], k=min(window, len(original)))
-    return {"tree": tree, "normals": fitted if normals is None else normals, "variation": variation,
-            "centres": centres, "windows": windows.reshape(len(centres), -1), "k": k}
+    return {"tree": tree, "normals": normals, "variation": variation,
+            "windows": windows.reshape(len(centres), -1), "k": k}
 
 
 def surface_distortion(original, marked, side=None):
-    """MRMS, surface Hausdorff, normal deviation and MSDM of a marked copy.
+    """Point and surface distances, normal deviation and MSDM of a marked copy.
 
     Parameters
     ----------
@@ -140,24 +137,29 @@ def surface_distortion(original, marked, side=None):
 
     Returns
     -------
-    dict
-        mrms, surface_hausdorff (in the points' units), normal_deviation_deg, msdm.
+    dict, distances in the points' units
+        hausdorff (nearest points, both ways), surface_rms_forward (marked
+        points to the original's surface), mrms, surface_hausdorff,
+        normal_deviation_deg, msdm.
     """
     side = side or original_side(original)
-    tree, n_orig, k = side["tree"], side["normals"], side["k"]
+    n_orig = side["normals"]
     marked_tree = cKDTree(marked)
-    _, n_marked, v_marked = local_planes(marked, marked, k, marked_tree)
-    forward = to_surface(marked, original, n_orig, tree)
-    backward = to_surface(original, marked, n_marked, marked_tree)
-    _, near = tree.query(marked)
+    _, n_marked, v_marked = local_planes(marked, marked, side["k"], marked_tree)
+    d_forward, near = side["tree"].query(marked)
+    d_back, back = marked_tree.query(original)
+    forward = to_surface(marked, original, n_orig, near)
+    backward = to_surface(original, marked, n_marked, back)
     # the angle from atan2 of |cross| and |dot|: exact 0 for equal normals, unlike arccos near 1
     a, b = n_marked, n_orig[near]
     angle = np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), np.abs(np.einsum("ni,ni->n", a, b)))
-    # roughness of the copy carried onto the original's points (nearest marked point)
-    _, back = marked_tree.query(original)
+    forward_rms = float(np.sqrt((forward**2).mean()))
     return {
-        "mrms": float(max(np.sqrt((forward**2).mean()), np.sqrt((backward**2).mean()))),
+        "hausdorff": float(max(d_forward.max(), d_back.max())),
+        "surface_rms_forward": forward_rms,
+        "mrms": max(forward_rms, float(np.sqrt((backward**2).mean()))),
         "surface_hausdorff": float(max(forward.max(), backward.max())),
         "normal_deviation_deg": float(np.degrees(angle).mean()),
+        # roughness of the copy carried onto the original's points (nearest marked point)
         "msdm": msdm(side["variation"], v_marked[back], side["windows"]),
     }

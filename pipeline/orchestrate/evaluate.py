@@ -104,7 +104,7 @@ def trial(model_path, cache_path, params, detect_params, chain_text, method, see
                                     params.displacement, **ref.detection_aids())
     result = decode(estimate, specs, material, params, dparams)
     errors = int((np.asarray(result["bits"]) != bits).sum())
-    dist = distortion(points, marked)
+    dist = _distortion_of(points, marked, (str(model_path), tuple(cache_path), params, material))
     return {
         "model": Path(model_path).stem, "attack": chain_text, "strength": _strength(chain),
         "method": method, "seed": int(seed), "beta": params.beta, "chip_rate": params.chip_rate,
@@ -117,6 +117,21 @@ def trial(model_path, cache_path, params, detect_params, chain_text, method, see
         "message_error": bool(errors > 0),
         "seconds_embed": t1 - t0, "seconds_attack": t2 - t1, "seconds_detect": time.perf_counter() - t2,
     }
+
+
+_DISTORTIONS = {}
+
+
+def _distortion_of(points, marked, key):
+    """Distortion of a marked copy, once per worker: every attack and seed of a cell shares the copy.
+
+    ``key`` (model, handle, embedding parameters, key material) decides the copy.
+    """
+    if key not in _DISTORTIONS:
+        if len(_DISTORTIONS) >= 64:
+            _DISTORTIONS.clear()
+        _DISTORTIONS[key] = distortion(points, marked)
+    return _DISTORTIONS[key]
 
 
 @functools.lru_cache(maxsize=4)

@@ -18,7 +18,7 @@ import numpy as np
 
 from .. import __version__
 from ..io.pointcloud import InputError, check_distinct, read_points, sha256_file, write_points
-from ..kernels import digest, fingerprint, resampling
+from ..kernels import digest, fingerprint
 from ..kernels import distortion as surface_measures
 from ..watermark import WatermarkError, distortion, fingerprint_displacement, fingerprint_length
 from .reference import cluster_reference, load_reference, plan_reference
@@ -115,7 +115,7 @@ def issue_task(plan, cluster_results, material, items, params, row_base):
     length = fingerprint_length(len(ref.specs), params)
     bank = fingerprint.chip_bank(material, copy_label(plan.asset_key, row_base["generation"]),
                                  [r for r, _ in items], length)
-    side = surface_measures.original_side(points, normals=resampling.estimate_normals(points))
+    side = surface_measures.original_side(points)
     shared = {**row_base, "n_points": plan.n_points, "fingerprint_length": length,
               "cluster_seeds": [s.seed_index for s in ref.specs],
               "cluster_sizes": [int(len(s.members)) for s in ref.specs],
