@@ -687,9 +687,50 @@ def _register(suspect, reference, spacing, method, tree):
     # (its ICP trims by a quantile, which outliers widen: polish it with a fixed cut first)
     robust = registration.refine_part(suspect, tree, reference, robust, spacing=spacing,
                                       widths=(3.0,), iterations=features.FINAL_ITERATIONS)
-    found = features.register_global(suspect, reference, spacing=spacing).transform
-    ranked = [features.overlap_of(t, suspect, reference, spacing) for t in (robust, found)]
-    return (robust, found)[features.best_overlap(ranked)]
+    tried = [robust] + _register_parts(suspect, reference, spacing, tree)
+    if not _whole_on_part(tried[-1], suspect, reference, spacing, tree):
+        tried.append(features.register_global(suspect, reference, spacing=spacing).transform)
+    ranked = [features.overlap_of(t, suspect, reference, spacing) for t in tried]
+    return tried[features.best_overlap(ranked)]
+
+
+PART_RADIUS = 4.0        # suspect spacings: points closer than this belong to one object
+PART_SHAPE = 0.3         # most |log| difference of principal spreads for a part tried whole
+MAX_PARTS = 3            # most parts registered whole, the most original-like first
+
+
+def _register_parts(suspect, reference, spacing, tree):
+    """Whole-to-whole registrations of the suspect's separate objects that look like the original.
+
+    A scene of separate objects is split into its connected parts; those
+    whose principal spreads match the original's (:func:`registration.shape_signature`,
+    unchanged by similarity transforms) are registered by ``register_robust``
+    alone, most alike first, until one holds the whole original.  Returns
+    the transforms tried (suspect coordinates), the last one best placed.
+    """
+    n = len(suspect)
+    radius = PART_RADIUS * float(np.median(resampling.nearest_spacing(suspect)))
+    parts = [p for p in registration.connected_parts(suspect, radius, min_points=max(200, n // 50))
+             if len(p) < 0.95 * n]
+    target = np.log(np.maximum(registration.shape_signature(reference)[1:], 1e-9))
+    alike = []
+    for part in parts:
+        gap = np.abs(np.log(np.maximum(registration.shape_signature(suspect[part])[1:], 1e-9)) - target).max()
+        if gap < PART_SHAPE:
+            alike.append((gap, len(alike), part))
+    found = []
+    for _, _, part in sorted(alike, key=lambda x: x[:2])[:MAX_PARTS]:
+        found.append(registration.register_robust(suspect[part], reference, spacing=spacing))
+        if _whole_on_part(found[-1], suspect, reference, spacing, tree):
+            break
+    return found
+
+
+def _whole_on_part(transform, suspect, reference, spacing, tree):
+    """Whether a registration lays part of the suspect over (nearly) all of the original, closely."""
+    _, coverage, residual = registration.overlap(registration.apply(transform, suspect), tree,
+                                                 _coverage_sample(reference), 3.0 * spacing)
+    return coverage >= 0.8 and residual < spacing
 
 
 def _coefficient_differences(aligned, reference, specs, bases, detect_params, displacement, normals=None,

@@ -1,11 +1,12 @@
-"""Robustness beyond the paper (issue 7) on three real scans.
+"""Robustness beyond the paper (issues 7 and 14) on three real scans.
 
 Each case runs one trial of the evaluation (``pipeline.orchestrate.evaluate.trial``, the
-code behind the report's rows): embed with the paper's defaults (beta 0.002,
-c 10, 32 bits) and the default config's beyond-the-paper choices (interleaved
-chips, displacement along the normals), attack, shuffle, detect with the
-robust method.  Every model has the paper's 5 clusters: of 4,000 points on the
-bunny, of 2,400 on the 12,000-point scans.
+code behind the report's rows): embed with the default config (the paper's
+c 10 and 32 bits, interleaved chips, displacement along the normals at beta
+0.002 / sqrt(3), so at the paper's distance to the surface, and the
+convolutional payload code), attack, shuffle, detect with the robust method.
+Every model has the paper's 5 clusters: of 4,000 points on the bunny, of
+2,400 on the 12,000-point scans.
 """
 
 from dataclasses import replace
@@ -51,10 +52,11 @@ def _trial(prepared, model, attack, seed=7, method="robust"):
     return evaluate.trial(path, cache, params, config.detect_params(DEFAULT), attack, method, seed, MATERIAL)
 
 
-def test_the_defaults_are_the_papers_where_the_issue_fixes_them():
+def test_the_default_is_the_rate_distortion_winner():
     params = config.watermark_params(DEFAULT)
-    assert (params.beta, params.chip_rate, params.n_bits) == (0.002, 10, 32)
-    assert params.displacement == "normal"
+    assert (params.chip_rate, params.n_bits) == (10, 32)
+    assert params.beta == pytest.approx(0.002 / np.sqrt(3), rel=0.01)
+    assert (params.displacement, params.code) == ("normal", "convolutional")
 
 
 @pytest.mark.parametrize("attack", EXACT)
@@ -80,12 +82,14 @@ def test_mesh_simplification_to_5000_vertices(prepared):
 
 @pytest.mark.parametrize("model", list(MODELS))
 def test_no_more_distortion_than_the_papers_method(model, prepared):
-    paper = _trial(prepared, model, "none", method="paper")
+    path, cache, params = prepared[model]
+    paper = evaluate.trial(path, cache, replace(params, beta=0.002), config.detect_params(DEFAULT), "none",
+                           "paper", 7, MATERIAL)
     robust = _trial(prepared, model, "none")
-    assert robust["rmse_rel_diag"] == pytest.approx(paper["rmse_rel_diag"], rel=1e-9)
+    # the paper's distance to the surface; less point motion and a lower peak
+    assert robust["mrms_rel_diag"] == pytest.approx(paper["mrms_rel_diag"], rel=0.06)
+    assert robust["rmse_rel_diag"] < 0.65 * paper["rmse_rel_diag"]
     assert robust["hausdorff_rel_diag"] <= paper["hausdorff_rel_diag"] * (1 + 1e-9)
-    # the price: all of the motion is across the surface (about sqrt(3) x the paper's there)
-    assert 1.4 < robust["surface_rmse_rel_diag"] / paper["surface_rmse_rel_diag"] < 2.0
 
 
 @pytest.mark.parametrize("model", list(MODELS))
@@ -100,21 +104,3 @@ def test_unmarked_original_and_wrong_key_are_not_watermarked(model, prepared):
         material = keys.derive_key_material(secret, "robustness")
         result = decode(estimate, specs, material, params, dparams)
         assert not result["detected"] and result["p_value"] > 1e-4
-
-
-# -- the rate-distortion winner (issue 14) ----------------------------------------------------------------------
-EQUAL = config.load_config(ROOT / "configs" / "equal-distortion.yaml")
-
-
-@pytest.mark.parametrize("model", list(MODELS))
-def test_at_the_papers_distance_the_coded_embedding_survives_noise_1_percent(model, prepared):
-    path, cache, params = prepared[model]
-    winner = replace(config.watermark_params(EQUAL), **MODELS[model])
-    assert winner.code == "convolutional" and winner.beta == pytest.approx(0.002 / np.sqrt(3), rel=0.01)
-    paper = evaluate.trial(path, cache, replace(params, beta=0.002), config.detect_params(EQUAL), "none",
-                           "paper", 7, MATERIAL)
-    row = evaluate.trial(path, cache, winner, config.detect_params(EQUAL), "noise:1%", "robust", 7, MATERIAL)
-    assert row["mrms_rel_diag"] == pytest.approx(paper["mrms_rel_diag"], rel=0.06)   # the paper's distance
-    assert row["rmse_rel_diag"] < 0.65 * paper["rmse_rel_diag"]
-    assert row["bit_errors"] == 0, row
-    assert row["detected"] and row["p_value"] < 1e-6

@@ -1,7 +1,8 @@
 """Part-to-whole detection (issue 13): crops, scenes and junk, with every suspect shuffled.
 
-Embeds with the default config's parameters (32 bits, beta 0.002, c 10,
-interleaved chips, displacement along the normals), attacks, shuffles and
+Embeds with the default config's parameters (32 bits, c 10, interleaved
+chips, displacement along the normals at the paper's distance to the
+surface, the convolutional payload code), attacks, shuffles and
 detects through ``estimate_differences`` / ``decode``, the engine's own
 path; registration is the default ``robust`` (the feature-based global step
 competes unless the principal frames overlap the original from both sides).  One model per case keeps each under about 30 s.
@@ -74,8 +75,9 @@ def test_zero_bit_errors_with_the_default_registration(marked, name, chain):
 
 
 def test_zero_bit_errors_inside_a_scene_of_other_scans(marked, shared_data):
-    # seed 21 once stopped RANSAC 15 degrees off on the near-symmetric owl;
-    # the rotated ICP restarts of register_global recover it
+    # seed 21 once stopped RANSAC 15 degrees off on the near-symmetric owl (the
+    # rotated ICP restarts of register_global recovered it), and at the default's
+    # beta on a wrong pose: the scene's separate objects are now registered whole
     copy = marked("nikolov_owl_12442")[1]
     rng = np.random.default_rng(21)
     others = [read_points(shared_data / "models" / f"{k}.ply").points

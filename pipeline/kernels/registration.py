@@ -10,6 +10,10 @@ of the principal frame are each refined by trimmed ICP with scale
 (Umeyama's closed form on nearest neighbours, pairs beyond a robust cut
 dropped, so partial overlap does not pull), and the best fit wins.
 
+``connected_parts`` splits a scene into the objects it holds (points closer
+than a few spacings are linked), so an asset placed among other objects can
+be registered whole-to-whole by ``register_robust``, the way a whole copy is.
+
 A transform maps suspect coordinates x to ``scale * x @ rotation.T + translation``.
 """
 
@@ -24,7 +28,7 @@ from scipy.spatial import cKDTree
 __all__ = [
     "Similarity", "apply", "umeyama", "principal_frame", "register_covariance",
     "icp_similarity", "register_robust", "umeyama_batch", "ransac_similarity", "overlap",
-    "refine_part",
+    "refine_part", "connected_parts", "shape_signature",
 ]
 
 
@@ -505,3 +509,56 @@ def refine_part(suspect, tree, original, start, *, spacing, iterations=30, width
     fitness = float(inside.mean())
     residual = float(np.sqrt((dist[inside] ** 2).mean())) if inside.any() else float("inf")
     return Similarity(current.rotation, current.scale, current.translation, fitness, residual)
+
+
+def connected_parts(points, radius, *, min_points=1):
+    """The connected parts of a point set: points closer than ``radius`` are linked.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+    radius : float
+    min_points : int
+        Parts with fewer points are left out.
+
+    Returns
+    -------
+    list of (n_i,) int
+        Point indices of each part, the largest part first (ties by the
+        smallest index, so the order is the same on every machine).
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    points = np.asarray(points, dtype=np.float64)
+    n = len(points)
+    if n == 0:
+        return []
+    pairs = cKDTree(points).query_pairs(float(radius), output_type="ndarray")
+    links = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, label = connected_components(links, directed=False)
+    sizes = np.bincount(label)
+    first = np.full(len(sizes), n)
+    np.minimum.at(first, label, np.arange(n))
+    order = np.lexsort((first, -sizes))
+    members = np.split(np.argsort(label, kind="stable"), np.cumsum(sizes)[:-1])
+    return [members[c] for c in order if sizes[c] >= min_points]
+
+
+def shape_signature(points):
+    """Spread of a point set along its principal axes, relative to the largest: (1, b, c).
+
+    Unchanged by rotation, translation and uniform scale, so a whole copy of
+    an asset has the original's signature wherever and however large it is.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+
+    Returns
+    -------
+    (3,) float, descending, first entry 1
+    """
+    centred = np.asarray(points, dtype=np.float64) - np.mean(points, axis=0)
+    spread = np.sqrt(np.maximum(np.linalg.eigvalsh(centred.T @ centred / max(len(centred), 1)), 0.0))[::-1]
+    return spread / spread[0] if spread[0] > 0 else spread

@@ -1,7 +1,8 @@
 import numpy as np
 
 from pipeline.kernels import attacks
-from pipeline.kernels.registration import apply, register_covariance, register_robust, umeyama
+from pipeline.kernels.registration import (apply, connected_parts, register_covariance, register_robust,
+                                          shape_signature, umeyama)
 from tests.conftest import sphere_patch
 
 
@@ -47,3 +48,27 @@ def test_robust_registration_rejects_a_collapsed_scale_far_from_the_original():
     t = register_robust(moved[rng.permutation(len(keep))], pts, spacing=0.02)
     assert abs(t.scale - 5.0) < 0.05 * 5.0
     assert t.fitness > 0.95
+
+
+def test_connected_parts_splits_separate_objects_largest_first():
+    rng = np.random.default_rng(4)
+    blob = rng.uniform(-1, 1, size=(900, 3)) * [3.0, 1.0, 0.5]
+    small = rng.uniform(-1, 1, size=(300, 3)) * 0.5 + [40.0, 0.0, 0.0]
+    junk = rng.uniform(-100, 100, size=(5, 3)) + [0.0, 300.0, 0.0]
+    points = np.vstack([small, junk, blob])
+    parts = connected_parts(points, 2.0, min_points=50)
+    assert [len(p) for p in parts] == [900, 300]
+    assert set(parts[0]) == set(range(305, 1205)) and set(parts[1]) == set(range(300))
+    # the order does not depend on the order of the points
+    perm = rng.permutation(len(points))
+    again = connected_parts(points[perm], 2.0, min_points=50)
+    assert [sorted(perm[p]) for p in again] == [sorted(p) for p in parts]
+
+
+def test_shape_signature_ignores_similarity_and_tells_shapes_apart():
+    rng = np.random.default_rng(5)
+    pts = rng.normal(size=(2000, 3)) * [4.0, 2.0, 1.0]
+    moved = attacks.similarity(pts, attacks.random_rotation(rng), 0.3, [5.0, -2.0, 9.0])
+    assert np.allclose(shape_signature(moved), shape_signature(pts), atol=1e-9)
+    assert np.allclose(shape_signature(pts), [1.0, 0.5, 0.25], atol=0.05)
+    assert np.abs(shape_signature(rng.normal(size=(2000, 3))) - shape_signature(pts)).max() > 0.3
