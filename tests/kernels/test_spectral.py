@@ -6,6 +6,8 @@ import numpy as np
 import pytest
 
 from pipeline.kernels.graph import connect_components, laplacian, radius_graph, valence_radius
+from pipeline.kernels import spectral
+from pipeline.kernels.digest import basis_digest
 from pipeline.kernels.spectral import canonicalize, spectral_basis
 from tests.conftest import ROOT, sphere_patch
 
@@ -34,6 +36,20 @@ def test_sparse_and_dense_paths_agree():
     v2, b2 = canonicalize(v2, b2)
     assert np.allclose(v1, v2[:40], atol=1e-9)
     assert np.allclose(b1, b2[:, :40], atol=1e-7)
+
+
+@pytest.mark.parametrize("fold", [spectral.FOLD, 3.0, 0.0])
+def test_folded_shift_fallback_and_plain_shift_give_the_dense_basis(monkeypatch, fold):
+    # FOLD: the shift inside the band; 3.0: past its top, so the nearest eigenvalues miss
+    # the bottom and the solve must fall back; 0.0: the plain shift below zero
+    monkeypatch.setattr(spectral, "FOLD", fold)
+    k = _laplacian(1500, rng=2)
+    values, basis = spectral_basis(k, 200)
+    from scipy.linalg import eigh
+    v2, b2 = canonicalize(*eigh(k.toarray(), subset_by_index=[0, 207]))
+    assert np.allclose(values, v2[:200], atol=1e-9)
+    assert np.allclose(basis, b2[:, :200], atol=1e-7)
+    assert basis_digest(basis) == basis_digest(b2[:, :200])
 
 
 def test_canonical_form_undoes_sign_flips_and_rotations_in_degenerate_spaces():
