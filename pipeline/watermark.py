@@ -677,7 +677,9 @@ def _register(suspect, reference, spacing, method, tree):
     # a whole copy overlaps the original from both sides; a part of it, the
     # asset among clutter or junk, or a fit collapsed to a tiny scale (every
     # point "near" the original) does not, and there the principal frames
-    # mean little: let the feature-based global step compete
+    # mean little: the scene's separate objects that look like the original
+    # are registered whole, and failing that the feature-based global step
+    # competes
     fitness, coverage, _ = registration.overlap(registration.apply(robust, suspect), tree,
                                                 _coverage_sample(reference), 3.0 * spacing)
     if min(fitness, coverage) >= 0.8:
@@ -687,9 +689,11 @@ def _register(suspect, reference, spacing, method, tree):
     # (its ICP trims by a quantile, which outliers widen: polish it with a fixed cut first)
     robust = registration.refine_part(suspect, tree, reference, robust, spacing=spacing,
                                       widths=(3.0,), iterations=features.FINAL_ITERATIONS)
-    tried = [robust] + _register_parts(suspect, reference, spacing, tree)
-    if not _whole_on_part(tried[-1], suspect, reference, spacing, tree):
-        tried.append(features.register_global(suspect, reference, spacing=spacing).transform)
+    placed = _register_parts(suspect, reference, spacing, tree)
+    if placed is not None:   # the original, whole, on one of the suspect's objects
+        tried = [robust, placed]
+    else:
+        tried = [robust, features.register_global(suspect, reference, spacing=spacing).transform]
     ranked = [features.overlap_of(t, suspect, reference, spacing) for t in tried]
     return tried[features.best_overlap(ranked)]
 
@@ -700,30 +704,35 @@ MAX_PARTS = 3            # most parts registered whole, the most original-like f
 
 
 def _register_parts(suspect, reference, spacing, tree):
-    """Whole-to-whole registrations of the suspect's separate objects that look like the original.
+    """Whole-to-whole registration of the suspect's separate object that is the original, if any.
 
     A scene of separate objects is split into its connected parts; those
     whose principal spreads match the original's (:func:`registration.shape_signature`,
     unchanged by similarity transforms) are registered by ``register_robust``
-    alone, most alike first, until one holds the whole original.  Returns
-    the transforms tried (suspect coordinates), the last one best placed.
+    alone, most alike first.  Returns the first transform (suspect
+    coordinates) that lays part of the suspect over the whole original
+    (:func:`_whole_on_part`), else None.
     """
     n = len(suspect)
     radius = PART_RADIUS * float(np.median(resampling.nearest_spacing(suspect)))
-    parts = [p for p in registration.connected_parts(suspect, radius, min_points=max(200, n // 50))
-             if len(p) < 0.95 * n]
-    target = np.log(np.maximum(registration.shape_signature(reference)[1:], 1e-9))
+    least = max(200, min(n // 50, len(reference) // 5))   # a part must be able to hold the original
+    parts = [p for p in registration.connected_parts(suspect, radius, min_points=least) if len(p) < 0.95 * n]
+    target = _signature(reference)
     alike = []
     for part in parts:
-        gap = np.abs(np.log(np.maximum(registration.shape_signature(suspect[part])[1:], 1e-9)) - target).max()
+        gap = float(np.abs(_signature(suspect[part]) - target).max())
         if gap < PART_SHAPE:
             alike.append((gap, len(alike), part))
-    found = []
     for _, _, part in sorted(alike, key=lambda x: x[:2])[:MAX_PARTS]:
-        found.append(registration.register_robust(suspect[part], reference, spacing=spacing))
-        if _whole_on_part(found[-1], suspect, reference, spacing, tree):
-            break
-    return found
+        found = registration.register_robust(suspect[part], reference, spacing=spacing)
+        if _whole_on_part(found, suspect, reference, spacing, tree):
+            return found
+    return None
+
+
+def _signature(points):
+    """log of the principal spreads relative to the largest, floored at 0.05 (flat parts compare too)."""
+    return np.log(np.maximum(registration.shape_signature(points)[1:], 0.05))
 
 
 def _whole_on_part(transform, suspect, reference, spacing, tree):

@@ -4,8 +4,11 @@ Embeds with the default config's parameters (32 bits, c 10, interleaved
 chips, displacement along the normals at the paper's distance to the
 surface, the convolutional payload code), attacks, shuffles and
 detects through ``estimate_differences`` / ``decode``, the engine's own
-path; registration is the default ``robust`` (the feature-based global step
-competes unless the principal frames overlap the original from both sides).  One model per case keeps each under about 30 s.
+path; registration is the default ``robust``: unless the principal frames
+overlap the original from both sides, a separate object of the suspect that
+looks like the original is registered whole, and failing that the
+feature-based global step competes.  One model per case keeps each under
+about 30 s.
 """
 
 from dataclasses import replace

@@ -512,12 +512,18 @@ def refine_part(suspect, tree, original, start, *, spacing, iterations=30, width
 
 
 def connected_parts(points, radius, *, min_points=1):
-    """The connected parts of a point set: points closer than ``radius`` are linked.
+    """The connected parts of a point set: points about ``radius`` apart or closer are linked.
+
+    Points are first pooled in cubic cells of ``radius / 2`` (duplicates and
+    dense patches cost no more than one cell each), and cells whose mean
+    points lie within ``radius`` are linked, so memory stays linear in the
+    number of occupied cells.
 
     Parameters
     ----------
     points : (n, 3) float
     radius : float
+        Linking distance, in the points' units.
     min_points : int
         Parts with fewer points are left out.
 
@@ -534,9 +540,18 @@ def connected_parts(points, radius, *, min_points=1):
     n = len(points)
     if n == 0:
         return []
-    pairs = cKDTree(points).query_pairs(float(radius), output_type="ndarray")
-    links = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    if not (np.isfinite(radius) and radius > 0):
+        return [np.arange(n)] if n >= min_points else []
+    cells = np.floor((points - points.min(axis=0)) / (0.5 * radius)).astype(np.int64)
+    _, cell_of = np.unique(cells, axis=0, return_inverse=True)
+    cell_of = cell_of.ravel()
+    counts = np.bincount(cell_of)
+    centres = np.stack([np.bincount(cell_of, weights=points[:, d]) for d in range(3)], axis=1) / counts[:, None]
+    m = len(counts)
+    pairs = cKDTree(centres).query_pairs(float(radius), output_type="ndarray")
+    links = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(m, m))
     _, label = connected_components(links, directed=False)
+    label = label[cell_of]
     sizes = np.bincount(label)
     first = np.full(len(sizes), n)
     np.minimum.at(first, label, np.arange(n))

@@ -72,3 +72,12 @@ def test_shape_signature_ignores_similarity_and_tells_shapes_apart():
     assert np.allclose(shape_signature(moved), shape_signature(pts), atol=1e-9)
     assert np.allclose(shape_signature(pts), [1.0, 0.5, 0.25], atol=0.05)
     assert np.abs(shape_signature(rng.normal(size=(2000, 3))) - shape_signature(pts)).max() > 0.3
+
+
+def test_connected_parts_of_duplicates_and_of_a_zero_radius():
+    point = np.zeros((5000, 3))
+    assert [len(p) for p in connected_parts(point, 0.0, min_points=10)] == [5000]
+    grid = np.repeat(np.stack(np.meshgrid(*[np.arange(10.0)] * 3), -1).reshape(-1, 3), 20, axis=0)
+    far = grid + [100.0, 0.0, 0.0]
+    parts = connected_parts(np.vstack([grid, far]), 1.5)
+    assert [len(p) for p in parts] == [20000, 20000]

@@ -38,13 +38,22 @@ def test_sparse_and_dense_paths_agree():
     assert np.allclose(b1, b2[:, :40], atol=1e-7)
 
 
-@pytest.mark.parametrize("fold", [spectral.FOLD, 3.0, 0.0])
-def test_folded_shift_fallback_and_plain_shift_give_the_dense_basis(monkeypatch, fold):
+@pytest.mark.parametrize("fold,folded_returned", [(spectral.FOLD, True), (3.0, False), (0.0, False)])
+def test_folded_shift_fallback_and_plain_shift_give_the_dense_basis(monkeypatch, fold, folded_returned):
     # FOLD: the shift inside the band; 3.0: past its top, so the nearest eigenvalues miss
     # the bottom and the solve must fall back; 0.0: the plain shift below zero
     monkeypatch.setattr(spectral, "FOLD", fold)
+    shifts = []
+    real = spectral.eigsh
+
+    def recording(*args, **kwargs):   # the real ARPACK call, its shifts noted
+        shifts.append(kwargs["sigma"])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(spectral, "eigsh", recording)
     k = _laplacian(1500, rng=2)
     values, basis = spectral_basis(k, 200)
+    assert (shifts[-1] > 0) == folded_returned and len(shifts) == (3 if fold == 3.0 else 2)
     from scipy.linalg import eigh
     v2, b2 = canonicalize(*eigh(k.toarray(), subset_by_index=[0, 207]))
     assert np.allclose(values, v2[:200], atol=1e-9)
