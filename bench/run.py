@@ -1,4 +1,4 @@
-"""pointmark benchmarks: ``make bench`` (or ``python bench/run.py [spectral] [catalog] [scan] [fingerprint] [issue] [leaks]``).
+"""pointmark benchmarks: ``make bench`` (or ``python bench/run.py [spectral] [catalog] [scan] [fingerprint] [issue] [cli] [leaks]``).
 
 Every figure is a ratio of two timings taken side by side in this one run,
 since shared machines are noisy; each timing is the best of a few repeats.
@@ -203,6 +203,96 @@ def issue_bench(n_copies=1000):
     shutil.rmtree(work / "marked", ignore_errors=True)
 
 
+PREVIOUS = "14b375f"   # the release before issue 15: no thread pinning in the CLI, no basis store
+
+
+def _cli(tree, args, cores=None):
+    """Seconds of one ``pointmark`` command run from ``tree`` (a checkout), optionally on given cores."""
+    import os
+    import subprocess
+
+    env = {k: v for k, v in os.environ.items() if not k.endswith("_NUM_THREADS")}   # as a user runs it
+    env.update(PYTHONPATH=str(tree), POINTMARK_SECRET="bench-secret-0123456789abcdef")
+    cmd = [sys.executable, "-m", "pipeline.cli", *map(str, args)]
+    if cores:
+        cmd = ["taskset", "-c", cores, *cmd]
+    t0 = time.perf_counter()
+    done = subprocess.run(cmd, cwd=tree, env=env, capture_output=True, text=True)
+    if done.returncode not in (0, 1):
+        raise RuntimeError(f"{' '.join(cmd)}: exit {done.returncode}: {done.stderr[-2000:]}")
+    return time.perf_counter() - t0
+
+
+def cli_bench(repeat=2):
+    """embed and detect of the bunny through the CLI, this tree against the previous release (issue 15).
+
+    Both run the previous release's configs/default.yaml (the same run), as
+    a user runs them (no thread variables set), pinned to one core by
+    taskset, interleaved, best of ``repeat``.  Then detection with the
+    original's bases in the store (``detect --ledger`` after ``run``), and
+    four concurrent detections on both cores against one alone.
+    """
+    import shutil
+    import subprocess
+
+    import yaml
+
+    bunny = ROOT.parent / "shared" / "data" / "models" / "bunny_zipper_faceref_34834.ply"
+    work = ROOT / "bench" / "results" / "cli"
+    previous = work / "previous"
+    if not (previous / "pipeline").exists():
+        shutil.rmtree(previous, ignore_errors=True)
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", "-f", str(previous), PREVIOUS],
+                       check=True, capture_output=True)
+    for sub in ("marked", "ledger"):
+        shutil.rmtree(work / sub, ignore_errors=True)
+    (work / "marked").mkdir(parents=True)
+    cfg = work / "config.yaml"
+    cfg.write_bytes(subprocess.run(["git", "-C", str(ROOT), "show", f"{PREVIOUS}:configs/default.yaml"],
+                                   check=True, capture_output=True).stdout)
+    message = "5ca1ab1e"
+    times = {}
+
+    def timed(name, tree, args, cores="0"):
+        times[name] = min(times.get(name, float("inf")), _cli(tree, args, cores))
+
+    for _ in range(repeat):
+        for label, tree in (("previous", previous), ("current", ROOT)):
+            out = work / "marked" / f"{label}.ply"
+            timed(f"{label} embed", tree, ["embed", bunny, out, "--key-id", "bench", "--message", message,
+                                           "--config", cfg])
+            timed(f"{label} detect", tree, ["detect", out, "--original", bunny, "--key-id", "bench",
+                                            "--expect", message, "--config", cfg])
+    # a one-asset catalogue run fills the basis store; detection then reads the bases
+    run_cfg = yaml.safe_load(cfg.read_text())
+    run_cfg.update({"catalog": {"source": str(bunny)}, "recipients": ["r1"], "key": {"id": "bench"},
+                    "output": {"dir": str(work / "marked" / "run"), "manifests": str(work / "ledger")}})
+    (work / "run.yaml").write_text(yaml.safe_dump(run_cfg))
+    _cli(ROOT, ["run", work / "run.yaml", "--serial"])
+    issued = next((work / "marked" / "run").rglob("*.ply"))
+    for _ in range(repeat):
+        timed("current detect, bases in the store", ROOT, ["detect", issued, "--ledger", work / "ledger"])
+    # four detections at once on both cores, against one alone
+    import concurrent.futures as cf
+
+    args = ["detect", work / "marked" / "current.ply", "--original", bunny, "--key-id", "bench", "--config", cfg]
+    one = _cli(ROOT, args)
+    with cf.ThreadPoolExecutor(4) as pool:
+        t0 = time.perf_counter()
+        list(pool.map(lambda _: _cli(ROOT, args), range(4)))
+        four = time.perf_counter() - t0
+    print(f"CLI on the bunny (34,834 points), the previous release ({PREVIOUS}) against this tree, "
+          f"its configs/default.yaml, one core (taskset), best of {repeat}, interleaved")
+    for name, value in times.items():
+        print(f"  {name:38s}: {value:7.2f} s")
+    for step in ("embed", "detect"):
+        print(f"  {step} speed-up, cold              : {times[f'previous {step}'] / times[f'current {step}']:7.2f} x")
+    print(f"  detect speed-up, bases in the store  : "
+          f"{times['previous detect'] / times['current detect, bases in the store']:7.2f} x")
+    print(f"  one detection alone (2 cores)        : {one:7.2f} s")
+    print(f"  four concurrent detections (2 cores) : {four:7.2f} s = {four / one:.2f} x one")
+
+
 def leaks_bench():
     """Leak scan over real scans and procedural shapes (issue 13; several hours): see bench/leaks.py."""
     sys.path.insert(0, str(ROOT / "bench"))
@@ -212,8 +302,8 @@ def leaks_bench():
 
 
 BENCHES = {"spectral": spectral_bench, "catalog": catalog_bench, "scan": scan_bench,
-           "fingerprint": fingerprint_bench, "issue": issue_bench, "leaks": leaks_bench}
-DEFAULT = ["spectral", "catalog", "scan", "fingerprint", "issue"]   # "leaks" runs when named
+           "fingerprint": fingerprint_bench, "issue": issue_bench, "cli": cli_bench, "leaks": leaks_bench}
+DEFAULT = ["spectral", "catalog", "scan", "fingerprint", "issue", "cli"]   # "leaks" runs when named
 
 
 def main(argv):
