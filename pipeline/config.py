@@ -194,7 +194,11 @@ SCAN = _section("Leak-detection scans (pointmark scan).", {
     "manifests": _p(("string", "null"), None,
                     "Embedding manifest folder (issued payloads); default output.manifests."),
     "out": _p("string", "out/scan", "Detection manifests: one Parquet file per suspect."),
-    "top_k": _p("integer", 3, "Candidate assets checked per suspect.", minimum=1),
+    "top_k": _p("integer", 3, "Candidate assets checked per suspect from each ranking (local-descriptor "
+                "votes, shape distribution).", minimum=1),
+    "shape_margin": _p("number", 1.6, "Assets whose shape-distribution distance is within this factor of "
+                       "the nearest are also checked (near-identical assets), up to twice top_k from that "
+                       "ranking.", minimum=1.0),
     "max_bit_errors": _p("integer", 3, "A decoded payload within this many bits of an issued one "
                          "identifies its recipient.", minimum=0),
 })

@@ -27,11 +27,13 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .kernels import registration
+from .kernels.descriptor import cut_descriptors, d2_descriptor, descriptor_distance
 from .kernels.resampling import nearest_spacing
 
 __all__ = [
     "fpfh", "voxel_for", "match", "register_global", "GlobalResult",
     "FeatureIndex", "InvertedFile", "build_index", "nearest_exact", "geometry_hash", "harmonic", "best_overlap", "overlap_of", "dense_part", "median_spacing",
+    "suspect_views",
 ]
 
 NORMAL_RADIUS = 2.0     # voxels
@@ -468,6 +470,11 @@ class FeatureIndex:
         Share of votes each asset draws from unrelated background (procedural
         clutter, junk points): "hub" assets whose descriptors resemble
         anything are discounted by it.
+    shapes : (V, D2_BINS) float, optional
+        Shape distributions (D2) of every asset, whole and cut
+        (:func:`~pipeline.kernels.descriptor.cut_descriptors`).
+    shape_owner : (V,) int32, optional
+        Index into ``keys`` of each row of ``shapes``.
     """
 
     keys: list
@@ -476,6 +483,8 @@ class FeatureIndex:
     hashes: list
     prior: np.ndarray = None
     cells: "InvertedFile | None" = None
+    shapes: np.ndarray = None
+    shape_owner: np.ndarray = None
 
     def save(self, path):
         """Write the index as a ``.npz`` file."""
@@ -483,6 +492,8 @@ class FeatureIndex:
 
         buf = io.BytesIO()
         extra = {} if self.cells is None else {"centroids": self.cells.centroids, "cell": self.cells.cell}
+        if self.shapes is not None:
+            extra.update(shapes=self.shapes, shape_owner=self.shape_owner)
         np.savez(buf, keys=np.array(self.keys, dtype=str), features=self.features, owner=self.owner,
                  hashes=np.array(self.hashes, dtype=str), prior=self.prior, **extra)
         atomic_write_bytes(path, buf.getvalue())
@@ -491,8 +502,29 @@ class FeatureIndex:
     def load(cls, path):
         data = np.load(path)
         cells = InvertedFile(data["centroids"], data["cell"]) if "centroids" in data.files else None
+        shapes = (data["shapes"], data["shape_owner"]) if "shapes" in data.files else (None, None)
         return cls([str(k) for k in data["keys"]], data["features"], data["owner"],
-                   [str(h) for h in data["hashes"]], data["prior"], cells)
+                   [str(h) for h in data["hashes"]], data["prior"], cells, *shapes)
+
+    def shape_distances(self, points):
+        """Per asset, the least D2 distance between any view of the suspect and any of the asset.
+
+        The suspect's views (:func:`suspect_views`) are its points, its dense
+        part and its separate objects; an asset's are it whole and cut.  So
+        a copy with outliers, an asset among other objects and a crop are
+        each compared with what they derive from.
+
+        Returns
+        -------
+        (n_assets,) float, inf for an asset with no shape views
+        """
+        out = np.full(len(self.keys), np.inf)
+        if self.shapes is None:
+            return out
+        for view in suspect_views(points):
+            d = np.atleast_1d(descriptor_distance(d2_descriptor(view - view.mean(axis=0)), self.shapes))
+            np.minimum.at(out, self.shape_owner, d)
+        return out
 
     def exact(self, points):
         """Asset keys whose geometry hash equals the suspect's (re-saves, re-orderings)."""
@@ -571,18 +603,56 @@ def build_index(clouds, *, ivf=None):
     -------
     FeatureIndex
     """
-    keys, feats, owner, hashes = [], [], [], []
+    keys, feats, owner, hashes, shapes = [], [], [], [], []
     for i, (key, points) in enumerate(clouds.items()):
         _, f = describe(points)
         keys.append(str(key))
         feats.append(f)
         owner.append(np.full(len(f), i, dtype=np.int32))
         hashes.append(geometry_hash(points))
-    index = FeatureIndex(keys, np.concatenate(feats).astype(np.float32), np.concatenate(owner), hashes)
+        centred = np.asarray(points, dtype=np.float64) - np.mean(points, axis=0)
+        shapes.append(np.vstack([d2_descriptor(centred), cut_descriptors(centred)]))
+    index = FeatureIndex(keys, np.concatenate(feats).astype(np.float32), np.concatenate(owner), hashes,
+                         shapes=np.concatenate(shapes),
+                         shape_owner=np.concatenate([np.full(len(v), i, dtype=np.int32)
+                                                     for i, v in enumerate(shapes)]))
     if len(index.features) >= (IVF_MIN if ivf is None else (0 if ivf else np.inf)):
         index.cells = InvertedFile.train(index.features)
     index.prior = background_votes(index)
     return index
+
+
+VIEW_PART_RADIUS = 4.0   # median spacings: points closer belong to one object
+MAX_VIEW_PARTS = 6       # separate objects of a suspect described, the largest first
+VIEW_DENSE = 2.0         # outlier cut of the dense view, in median k-th neighbour distances
+
+
+def suspect_views(points):
+    """What of a suspect may be an asset: its points, its dense part, its separate objects.
+
+    The dense part drops sparse outliers (:func:`dense_part` twice, at
+    ``VIEW_DENSE`` times the median neighbour distance: junk in the bounding
+    box raises that median, so one pass keeps most of it); the objects
+    are its connected parts (:func:`registration.connected_parts` at
+    ``VIEW_PART_RADIUS`` spacings) of at least 1/20 of it, the largest
+    ``MAX_VIEW_PARTS``.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+
+    Returns
+    -------
+    list of (n_i, 3) float
+    """
+    points = np.asarray(points, dtype=np.float64)
+    dense = dense_part(dense_part(points, factor=VIEW_DENSE), factor=VIEW_DENSE)
+    views = [points, dense] if len(dense) < len(points) else [points]
+    if len(dense) >= 400:
+        radius = VIEW_PART_RADIUS * float(np.median(nearest_spacing(dense)))
+        parts = registration.connected_parts(dense, radius, min_points=max(200, len(dense) // 20))
+        views += [dense[p] for p in parts[:MAX_VIEW_PARTS] if len(p) < 0.95 * len(dense)]
+    return views
 
 
 def nearest_exact(queries, features, k):

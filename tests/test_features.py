@@ -6,6 +6,7 @@ import pytest
 from pipeline import demo, features, surface
 from pipeline.io.pointcloud import read_points
 from pipeline.kernels import attacks, registration
+from pipeline.kernels.descriptor import d2_descriptor, descriptor_distance
 from pipeline.kernels.resampling import nearest_spacing
 
 INDEX_MODELS = ["bunny_zipper_faceref_34834", "kitten_12623", "nikolov_owl_12442", "fandisk_cad_6475",
@@ -140,3 +141,67 @@ def test_near_equal_overlaps_are_decided_by_the_residual():
     assert features.best_overlap([(0.05, 0.01), (0.50, 0.80)]) == 1
     # equal residuals: the first
     assert features.best_overlap([(0.5, 0.2), (0.5, 0.2)]) == 0
+
+
+def _bent(points, amount=0.01):
+    """A near-identical twin: bent by ``amount`` of the largest side."""
+    size = float(np.ptp(points, axis=0).max())
+    out = points.copy()
+    out[:, 1] += amount * size * np.sin(np.pi * (points[:, 0] - points[:, 0].min()) / size)
+    return out
+
+
+@pytest.fixture(scope="module")
+def blob_family():
+    """Smooth procedural blobs, their bent near-twins and other shapes: FPFH tells none of the blobs apart."""
+    shapes = {f"blob-{s}": demo.procedural_shape("blob", 3000, seed=s) * 20 for s in (0, 4, 8)}
+    shapes.update({f"{k}-bent": _bent(v) for k, v in list(shapes.items())})
+    shapes.update({f"{kind}-{s}": demo.procedural_shape(kind, 3000, seed=s) * 20
+                   for kind in ("torus", "shell") for s in (1, 2)})
+    return shapes, features.build_index(shapes)
+
+
+@pytest.mark.parametrize("chain", ["crop:0.3+random_similarity", "crop:0.5+random_similarity+noise:0.3%",
+                                   "random_similarity+clutter:3", "outliers:0.5"])
+def test_shape_views_find_blobs_that_local_descriptors_cannot_tell_apart(blob_family, chain):
+    # what the scan checks from this ranking: the top 3, and up to 6 within 1.6 x the nearest
+    from pipeline.orchestrate.scan import _candidates
+
+    shapes, index = blob_family
+    steps = [surface.parse_attack(s) for s in chain.split("+")] + [("shuffle", None)]
+    for i, name in enumerate(("blob-0", "blob-4-bent", "blob-8")):
+        suspect = surface.apply_chain(shapes[name], steps, rng=20 + i)
+        dist = index.shape_distances(suspect)
+        order = np.argsort(dist, kind="stable")
+        info = {"ranking": [index.keys[j] for j in order], "distances": list(dist[order]), "index_ranking": []}
+        picked = _candidates(info, set(index.keys), 3)
+        assert name in picked, (name, info["ranking"][:6], np.round(info["distances"][:6], 4))
+        if "crop" not in chain:   # whole copies: the asset or its near-twin first, the rest far behind
+            assert info["ranking"][0].split("-bent")[0] == name.split("-bent")[0]
+            assert info["distances"][2] > 2.0 * info["distances"][0]
+
+
+def test_suspect_views_split_a_scene_and_drop_outliers():
+    pts = demo.procedural_shape("torus", 3000, seed=1)
+    scene = surface.apply_chain(pts, [("clutter", 3.0)], rng=2)
+    views = features.suspect_views(scene)
+    assert len(views[0]) == len(scene)
+    # the asset is one of the separate objects, whole
+    assert any(len(v) == len(pts) and np.array_equal(np.sort(v, axis=0), np.sort(pts, axis=0)) for v in views)
+    junk = surface.apply_chain(pts, [("outliers", 0.5)], rng=2)
+    dense = features.suspect_views(junk)[1]
+    assert len(pts) * 0.97 <= len(dense) < len(junk)
+    # what is dropped is junk, and the dense view's shape distribution is nearer the asset's
+
+    def d2(p):
+        return d2_descriptor(p - p.mean(axis=0))
+
+    assert descriptor_distance(d2(dense), d2(pts)) < 0.5 * descriptor_distance(d2(junk), d2(pts))
+
+
+def test_shape_views_survive_saving_the_index(blob_family, tmp_path):
+    _, index = blob_family
+    index.save(tmp_path / "i.npz")
+    loaded = features.FeatureIndex.load(tmp_path / "i.npz")
+    assert np.array_equal(loaded.shapes, index.shapes) and np.array_equal(loaded.shape_owner, index.shape_owner)
+    assert len(index.shapes) == len(index.keys) * (1 + 48 * 3)

@@ -12,30 +12,33 @@ canonical:
   pseudo-random probe vector is positive.
 
 The solver is ARPACK's Lanczos in shift-invert mode, started from a fixed
-vector, with a dense ``eigh`` only for small clusters.  The shift sits inside
-the wanted band, at ``FOLD`` times its top (extrapolated from the lowest
-``PILOT`` eigenvalues by a power law): the band folds about the shift, so its
-top stands about twice as far from the unwanted eigenvalues, relative to the
-distance from the shift, as with a shift below zero, and Lanczos needs fewer
-steps.  The k eigenvalues nearest the shift are the lowest k exactly when
-the farthest of them lies farther from the shift than zero does (K is
-positive semi-definite); otherwise the solve is repeated with a small
-negative shift.
+vector, with a dense ``eigh`` only for small clusters.  Large bands are
+solved in slices (spectrum slicing): the band's top is extrapolated from the
+lowest ``PILOT`` eigenvalues by a power law, cut into intervals of about
+``SLICE`` eigenvalues each, whose counts come from the inertia of K - sI
+(Sylvester's law, read off a symmetric LDL^T factor); each interval is
+solved around its midpoint, where Lanczos converges in few steps with a
+short basis.  The counts are proved, not trusted: each solve asks for one
+eigenvalue more than its interval holds, and exactly that one must fall
+outside.  Any failed check repeats the whole solve with one shift below
+zero (K is positive semi-definite).
 """
 
 from __future__ import annotations
 
 import numpy as np
 import scipy.linalg as sl
-from scipy.sparse.linalg import ArpackNoConvergence, eigsh
+import scipy.sparse as sp
+from scipy.sparse.linalg import ArpackNoConvergence, eigsh, splu
 
 __all__ = ["spectral_basis", "canonicalize", "probe_vector"]
 
 DENSE_BELOW = 800       # clusters smaller than this use dense eigh
 GUARD = 8               # extra vectors so a degenerate space at the cut is whole
 _SHIFT = -1e-3          # shift-invert centre, below the zero eigenvalue
-FOLD = 0.45             # folded shift, as a share of the estimated top of the wanted band
 PILOT = 24              # lowest eigenvalues from which the top of the band is extrapolated
+SLICE = 96              # eigenvalues per slice of the band
+ORTHO_TOL = 1e-9        # largest |V^T V - I| accepted from vectors of separate slices
 
 
 def probe_vector(n, salt):
@@ -84,23 +87,92 @@ def spectral_basis(laplacian, n_vectors, *, degenerate_tol=1e-8):
 
 
 def _lowest(laplacian, k):
-    """The k lowest eigenpairs of a sparse PSD matrix by shift-invert Lanczos, folded when it pays."""
+    """The k lowest eigenpairs of a sparse PSD matrix by shift-invert Lanczos, sliced when it pays."""
     n = laplacian.shape[0]
     v0 = 1.0 + probe_vector(n, 0.5)
-    # folding pays when the band is a small share of the spectrum (Weyl's law holds there)
+    # slicing pays when the band is a small share of the spectrum (Weyl's law holds there)
     if 2 * PILOT < k <= n // 6:
         try:
-            sigma = FOLD * _band_top(laplacian, k, v0)
-            if sigma > 0.0:
-                values, vectors = eigsh(laplacian, k=k, sigma=sigma, which="LM", v0=v0, ncv=min(n, k + 72),
-                                        tol=0.0)
-                # the k nearest the shift reach down to 0 (hence are the lowest k) when
-                # the farthest of them is farther from the shift than 0 is
-                if np.abs(values - sigma).max() > sigma * (1.0 + 1e-6):
-                    return values, vectors
+            found = _sliced(laplacian, k, v0)
+            if found is not None:
+                return found
         except (ArpackNoConvergence, RuntimeError):   # (a singular factor) the plain shift below
             pass
     return eigsh(laplacian, k=k, sigma=_SHIFT, which="LM", v0=v0, ncv=min(n, k + 100), tol=0.0)
+
+
+def _sliced(laplacian, k, v0):
+    """The k lowest eigenpairs solved slice by slice; None when a check fails.
+
+    Returns
+    -------
+    values : (k,) float, ascending
+    vectors : (n, k) float
+    """
+    top = 1.1 * _band_top(laplacian, k, v0)
+    total = _inertia(laplacian, top) if top > 0.0 else None
+    for _ in range(4):                           # the estimate was low: widen the band
+        if total is None or total >= k:
+            break
+        top *= 1.15 * k / max(total, PILOT)
+        total = _inertia(laplacian, top)
+    if total is None or total < k:
+        return None
+    n_slices = max(1, round(k / SLICE))
+    edges = np.linspace(0.0, top, n_slices + 1)
+    edges[0] = -0.01 * edges[1]                  # the zero eigenvalue, rounded either way, is inside
+    counts = [0] + [_inertia(laplacian, e) for e in edges[1:-1]] + [total]
+    if None in counts or np.any(np.diff(counts) < 0):
+        return None
+    values, vectors = [], []
+    for lo, hi, m in zip(edges[:-1], edges[1:], np.diff(counts)):
+        found = _interval(laplacian, lo, hi, int(m), v0)
+        if found is None:
+            return None
+        values.append(found[0])
+        vectors.append(found[1])
+    values, vectors = np.concatenate(values), np.hstack(vectors)
+    keep = np.argsort(values, kind="stable")[:k]
+    values, vectors = values[keep], vectors[:, keep]
+    if np.abs(vectors.T @ vectors - np.eye(k)).max() > ORTHO_TOL:
+        return None
+    return values, vectors
+
+
+def _interval(laplacian, lo, hi, m, v0):
+    """The m eigenpairs in [lo, hi), proved to be all of them; None otherwise.
+
+    Lanczos around the midpoint returns the m + 1 nearest eigenvalues; every
+    eigenvalue of the interval lies nearer than any outside it, so the
+    interval holds exactly m when exactly m of those fall inside.
+    """
+    n = laplacian.shape[0]
+    if m == 0:
+        return np.empty(0), np.empty((n, 0))
+    if m + 1 >= n - 1:
+        return None
+    values, vectors = eigsh(laplacian, k=m + 1, sigma=0.5 * (lo + hi), which="LM", v0=v0,
+                            ncv=min(n, m + 1 + max(20, m // 2)), tol=0.0)
+    inside = (values >= lo) & (values < hi)
+    if int(inside.sum()) != m:
+        return None
+    return values[inside], vectors[:, inside]
+
+
+def _inertia(laplacian, shift):
+    """Number of eigenvalues below ``shift`` (Sylvester's law); None when the factor pivoted.
+
+    A symmetric ordering with no row pivoting makes the LU factor an LDL^T
+    one, whose diagonal has as many negative entries as K - shift I has
+    negative eigenvalues.  The count only plans the slices: each slice
+    proves its own.
+    """
+    n = laplacian.shape[0]
+    shifted = (laplacian - shift * sp.identity(n, format="csc")).tocsc()
+    lu = splu(shifted, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    if not np.array_equal(lu.perm_r, lu.perm_c):
+        return None
+    return int((lu.U.diagonal() < 0).sum())
 
 
 def _band_top(laplacian, k, v0):
@@ -109,7 +181,7 @@ def _band_top(laplacian, k, v0):
     On a sampled surface the eigenvalues grow about linearly with their
     index (Weyl's law in 2D); the exponent fitted to the upper half of the
     pilot adapts to other shapes.  The smaller of the linear and the fitted
-    extrapolation is returned: a low estimate only folds less.
+    extrapolation is returned: a low estimate only costs a recount.
     """
     n = laplacian.shape[0]
     low = np.sort(eigsh(laplacian, k=PILOT, sigma=_SHIFT, which="LM", v0=v0, ncv=min(n, 3 * PILOT), tol=1e-4,

@@ -3,8 +3,10 @@
 Per suspect: (1) a suspect that is a catalogue original's own bytes is no
 match; (2) an exact sha256 match with an issued copy attributes at once;
 (3) otherwise the top-K catalogue assets by local-descriptor votes
-(part-to-whole: crops, scenes) and the top-K by global shape descriptor are checked,
-best-ranked first and until the first match, through the one attribution
+(part-to-whole: crops, scenes) and the top-K by shape distribution (the
+suspect whole, without outliers and object by object, against each asset
+whole and cut) are checked, alternately best-ranked first and until the
+first match, through the one attribution
 path (:mod:`pipeline.orchestrate.attribute`), each against every recipient
 issued under the keys held; the verdict is corrected for every recipient of
 every candidate planned.
@@ -98,29 +100,47 @@ def _index(path):
 def triage(suspect_path, descriptors, index_path):
     """Read a suspect, hash it, rank every catalogue asset two ways.
 
-    ``ranking``: by global shape descriptor (D2), right for whole copies;
-    ``index_ranking``: by votes of local descriptors (FPFH) over the catalogue
-    index, right for parts of an asset and assets inside a scene.
+    ``ranking``: by shape distribution (D2), the suspect's views (it whole,
+    without outliers, each separate object) against each asset's (whole,
+    and cut as a crop cuts it), right for whole copies, scenes, outliers and
+    crops; ``index_ranking``: by votes of local descriptors (FPFH) over the
+    catalogue index, right for parts of an asset and assets inside a scene.
     """
     t0 = time.perf_counter()
     points = read_points(suspect_path).points
     names = list(descriptors)
     dist = np.atleast_1d(descriptor_distance(d2_descriptor(points - points.mean(axis=0)),
                                              np.array([descriptors[k] for k in names])))
+    index_ranking = []
+    if index_path:
+        index = _index(index_path)
+        views = dict(zip(index.keys, index.shape_distances(points)))
+        dist = np.minimum(dist, [views.get(k, np.inf) for k in names])
+        index_ranking = [k for k, _ in index.rank(points, top_k=len(names))]
     order = np.argsort(dist, kind="stable")
-    index_ranking = [k for k, _ in _index(index_path).rank(points, top_k=len(names))] if index_path else []
     return {"path": str(suspect_path), "sha256": sha256_file(suspect_path), "n_points": len(points),
-            "ranking": [names[i] for i in order], "index_ranking": index_ranking,
-            "seconds": time.perf_counter() - t0}
+            "ranking": [names[i] for i in order], "distances": [float(dist[i]) for i in order],
+            "index_ranking": index_ranking, "seconds": time.perf_counter() - t0}
 
 
-def _candidates(info, view, top_k):
-    """The top-K of each ranking among the assets in view, index first, without repeats."""
-    pick = [a for a in info["index_ranking"] if a in view][:top_k] + [a for a in info["ranking"] if a in view][:top_k]
+def _candidates(info, view, top_k, margin=1.6):
+    """Candidates among the assets in view, alternating between the rankings (best of each first).
+
+    The top-K of each ranking, and also, up to 2K from the shape ranking,
+    the assets whose shape distance is within ``margin`` times the nearest
+    in view (near-identical assets tie there).
+    """
+    by_votes = [a for a in info["index_ranking"] if a in view][:top_k]
+    shaped = [(a, d) for a, d in zip(info["ranking"], info.get("distances") or [0.0] * len(info["ranking"]))
+              if a in view]
+    by_shape = [a for i, (a, d) in enumerate(shaped)
+                if i < top_k or (i < 2 * top_k and d <= margin * shaped[0][1])]
+    pick = [a for pair in zip(by_shape, by_votes) for a in pair]
+    pick += by_shape[len(by_votes):] + by_votes[len(by_shape):]
     return list(dict.fromkeys(pick))
 
 
-INDEX_FORMAT = "v2"   # v2: large indexes carry inverted-file cells
+INDEX_FORMAT = "v3"   # v2: large indexes carry inverted-file cells; v3: whole and cut shape views
 
 
 def _build_index(out, cat_version, catalogue_paths):
@@ -223,7 +243,7 @@ def run_scan(cfg, secret, *, force=False):
                     continue
                 view = _scope(issued, prev, state, out)
                 info["prev"] = prev
-                info["candidates"] = _candidates(info, view, sc["top_k"])
+                info["candidates"] = _candidates(info, view, sc["top_k"], sc["shape_margin"])
                 info["planned"] = planned_recipients([view[a] for a in info["candidates"]], materials)
                 info["checks"], info["errors"] = [], []
                 # candidates are checked best-ranked first and the search

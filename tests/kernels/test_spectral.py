@@ -38,11 +38,24 @@ def test_sparse_and_dense_paths_agree():
     assert np.allclose(b1, b2[:, :40], atol=1e-7)
 
 
-@pytest.mark.parametrize("fold,folded_returned", [(spectral.FOLD, True), (3.0, False), (0.0, False)])
-def test_folded_shift_fallback_and_plain_shift_give_the_dense_basis(monkeypatch, fold, folded_returned):
-    # FOLD: the shift inside the band; 3.0: past its top, so the nearest eigenvalues miss
-    # the bottom and the solve must fall back; 0.0: the plain shift below zero
-    monkeypatch.setattr(spectral, "FOLD", fold)
+def _miscount(real):
+    """An inertia count one short at every interior edge (as a wrong LDL^T pivot sign would give)."""
+    calls = []
+
+    def wrong(laplacian, shift):
+        calls.append(shift)
+        return real(laplacian, shift) - (1 if len(calls) > 1 else 0)
+    return wrong
+
+
+@pytest.mark.parametrize("case", ["sliced", "miscounted", "plain"])
+def test_sliced_fallback_and_plain_shift_give_the_dense_basis(monkeypatch, case):
+    # sliced: several slices solved around their midpoints; miscounted: a slice's count is
+    # wrong, its own check catches it and the solve falls back; plain: slicing disabled
+    if case == "miscounted":
+        monkeypatch.setattr(spectral, "_inertia", _miscount(spectral._inertia))
+    if case == "plain":
+        monkeypatch.setattr(spectral, "_sliced", lambda *a: None)
     shifts = []
     real = spectral.eigsh
 
@@ -51,14 +64,55 @@ def test_folded_shift_fallback_and_plain_shift_give_the_dense_basis(monkeypatch,
         return real(*args, **kwargs)
 
     monkeypatch.setattr(spectral, "eigsh", recording)
+    k = _laplacian(1500, rng=2)   # (its eigenvalue 6 is highly degenerate: the band stays below it)
+    values, basis = spectral_basis(k, 150)
+    sliced_returned = shifts[-1] > 0
+    assert sliced_returned == (case == "sliced")
+    if case == "sliced":   # the pilot, then one solve per slice, each around its own midpoint
+        assert len(shifts) == 1 + round(158 / spectral.SLICE) and len(set(shifts[1:])) == len(shifts) - 1
+    from scipy.linalg import eigh
+    v2, b2 = canonicalize(*eigh(k.toarray(), subset_by_index=[0, 157]))
+    assert np.allclose(values, v2[:150], atol=1e-9)
+    assert np.allclose(basis, b2[:, :150], atol=1e-7)
+    assert basis_digest(basis) == basis_digest(b2[:, :150])
+
+
+def test_a_degenerate_eigenvalue_in_a_slice_falls_back_to_the_plain_shift(monkeypatch):
+    # eigenvalue 6 of this graph has a multiplicity Lanczos from one start vector does not
+    # resolve around a far shift: the slice's count check must refuse it
+    shifts = []
+    real = spectral.eigsh
+
+    def recording(*args, **kwargs):
+        shifts.append(kwargs["sigma"])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(spectral, "eigsh", recording)
     k = _laplacian(1500, rng=2)
     values, basis = spectral_basis(k, 200)
-    assert (shifts[-1] > 0) == folded_returned and len(shifts) == (3 if fold == 3.0 else 2)
+    assert shifts[-1] < 0 and len(shifts) > 2
     from scipy.linalg import eigh
     v2, b2 = canonicalize(*eigh(k.toarray(), subset_by_index=[0, 207]))
     assert np.allclose(values, v2[:200], atol=1e-9)
-    assert np.allclose(basis, b2[:, :200], atol=1e-7)
     assert basis_digest(basis) == basis_digest(b2[:, :200])
+
+
+def test_inertia_counts_the_eigenvalues_below_a_shift():
+    k = _laplacian(1200, rng=4)
+    lam = np.linalg.eigvalsh(k.toarray())
+    for shift in (0.5 * (lam[10] + lam[11]), 0.5 * (lam[99] + lam[100]), 0.5 * (lam[300] + lam[301])):
+        assert spectral._inertia(k.tocsc(), shift) == int((lam < shift).sum())
+
+
+def test_an_interval_is_refused_when_its_count_is_wrong():
+    k = _laplacian(1200, rng=4).tocsc()
+    lam = np.linalg.eigvalsh(k.toarray())
+    lo, hi = 0.5 * (lam[20] + lam[21]), 0.5 * (lam[59] + lam[60])
+    v0 = 1.0 + spectral.probe_vector(k.shape[0], 0.5)
+    values, vectors = spectral._interval(k, lo, hi, 39, v0)
+    assert np.allclose(values, lam[21:60], atol=1e-9) and vectors.shape == (1200, 39)
+    assert spectral._interval(k, lo, hi, 38, v0) is None   # one too few: the 39th is inside
+    assert spectral._interval(k, lo, hi, 40, v0) is None   # one too many: only 39 are inside
 
 
 def test_canonical_form_undoes_sign_flips_and_rotations_in_degenerate_spaces():

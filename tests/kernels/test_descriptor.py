@@ -1,0 +1,39 @@
+"""D2 shape distributions: whole, cut (what a crop leaves), and their distance."""
+
+import numpy as np
+
+from pipeline.kernels import attacks
+from pipeline.kernels.descriptor import (CUT_DIRECTIONS, CUT_FRACTIONS, D2_BINS, cut_descriptors,
+                                         d2_descriptor, descriptor_distance, sphere_directions)
+from tests.conftest import sphere_patch
+
+
+def test_sphere_directions_are_unit_and_spread():
+    d = sphere_directions(48)
+    assert d.shape == (48, 3) and np.allclose(np.linalg.norm(d, axis=1), 1.0)
+    cos = d @ d.T - 2.0 * np.eye(48)
+    # every direction has a neighbour within 35 degrees and none closer than 15
+    assert np.degrees(np.arccos(cos.max(axis=1))).max() < 35
+    assert np.degrees(np.arccos(cos.max())) > 15
+
+
+def test_d2_is_invariant_to_similarity_and_order():
+    pts = sphere_patch(3000, 1)
+    rng = np.random.default_rng(2)
+    moved = attacks.similarity(pts, attacks.random_rotation(rng), 3.7, [1.0, -2.0, 5.0])[rng.permutation(3000)]
+    a, b = d2_descriptor(pts - pts.mean(axis=0)), d2_descriptor(moved - moved.mean(axis=0))
+    assert a.shape == (D2_BINS,) and abs(a.sum() - 1.0) < 1e-12
+    assert descriptor_distance(a, b) < 0.05
+
+
+def test_a_crop_is_nearer_its_cut_views_than_the_whole():
+    rng = np.random.default_rng(3)
+    pts = np.concatenate([sphere_patch(3000, 4), sphere_patch(1500, 5) * 0.4 + [0.0, 0.0, 1.5]])
+    cuts = cut_descriptors(pts)
+    assert cuts.shape == (CUT_DIRECTIONS * len(CUT_FRACTIONS), D2_BINS)
+    piece = attacks.crop(pts, 0.3, rng)
+    piece = attacks.similarity(piece, attacks.random_rotation(rng), 0.5, [3.0, 0.0, 0.0])
+    d = d2_descriptor(piece - piece.mean(axis=0))
+    whole = descriptor_distance(d, d2_descriptor(pts - pts.mean(axis=0)))
+    nearest_cut = descriptor_distance(d, cuts).min()
+    assert nearest_cut < 0.5 * whole, (nearest_cut, whole)
