@@ -131,8 +131,7 @@ def _candidates(info, view, top_k, margin=1.6):
     in view (near-identical assets tie there).
     """
     by_votes = [a for a in info["index_ranking"] if a in view][:top_k]
-    shaped = [(a, d) for a, d in zip(info["ranking"], info.get("distances") or [0.0] * len(info["ranking"]))
-              if a in view]
+    shaped = [(a, d) for a, d in zip(info["ranking"], info["distances"]) if a in view]
     by_shape = [a for i, (a, d) in enumerate(shaped)
                 if i < top_k or (i < 2 * top_k and d <= margin * shaped[0][1])]
     pick = [a for pair in zip(by_shape, by_votes) for a in pair]
