@@ -622,7 +622,6 @@ def build_index(clouds, *, ivf=None):
     return index
 
 
-VIEW_PART_RADIUS = 4.0   # median spacings: points closer belong to one object
 MAX_VIEW_PARTS = 6       # separate objects of a suspect described, the largest first
 VIEW_DENSE = 2.0         # outlier cut of the dense view, in median k-th neighbour distances
 
@@ -633,9 +632,8 @@ def suspect_views(points):
     The dense part drops sparse outliers (:func:`dense_part` twice, at
     ``VIEW_DENSE`` times the median neighbour distance: junk in the bounding
     box raises that median, so one pass keeps most of it); the objects
-    are its connected parts (:func:`registration.connected_parts` at
-    ``VIEW_PART_RADIUS`` spacings) of at least 1/20 of it, the largest
-    ``MAX_VIEW_PARTS``.
+    are its separate objects (:func:`registration.separate_objects`) of at
+    least 1/20 of it, the largest ``MAX_VIEW_PARTS``.
 
     Parameters
     ----------
@@ -649,9 +647,9 @@ def suspect_views(points):
     dense = dense_part(dense_part(points, factor=VIEW_DENSE), factor=VIEW_DENSE)
     views = [points, dense] if len(dense) < len(points) else [points]
     if len(dense) >= 400:
-        radius = VIEW_PART_RADIUS * float(np.median(nearest_spacing(dense)))
-        parts = registration.connected_parts(dense, radius, min_points=max(200, len(dense) // 20))
-        views += [dense[p] for p in parts[:MAX_VIEW_PARTS] if len(p) < 0.95 * len(dense)]
+        parts = registration.separate_objects(dense, float(np.median(nearest_spacing(dense))),
+                                              min_points=max(200, len(dense) // 20))
+        views += [dense[p] for p in parts[:MAX_VIEW_PARTS]]
     return views
 
 

@@ -698,7 +698,6 @@ def _register(suspect, reference, spacing, method, tree):
     return tried[features.best_overlap(ranked)]
 
 
-PART_RADIUS = 4.0        # suspect spacings: points closer than this belong to one object
 PART_SHAPE = 0.3         # most |log| difference of principal spreads for a part tried whole
 MAX_PARTS = 3            # most parts registered whole, the most original-like first
 
@@ -713,17 +712,13 @@ def _register_parts(suspect, reference, spacing, tree):
     coordinates) that lays part of the suspect over the whole original
     (:func:`_whole_on_part`), else None.
     """
-    n = len(suspect)
-    radius = PART_RADIUS * float(np.median(resampling.nearest_spacing(suspect)))
-    least = max(200, min(n // 50, len(reference) // 5))   # a part must be able to hold the original
-    parts = [p for p in registration.connected_parts(suspect, radius, min_points=least) if len(p) < 0.95 * n]
+    least = max(200, min(len(suspect) // 50, len(reference) // 5))   # a part must be able to hold the original
+    parts = registration.separate_objects(suspect, float(np.median(resampling.nearest_spacing(suspect))),
+                                          min_points=least)
     target = _signature(reference)
-    alike = []
-    for part in parts:
-        gap = float(np.abs(_signature(suspect[part]) - target).max())
-        if gap < PART_SHAPE:
-            alike.append((gap, len(alike), part))
-    for _, _, part in sorted(alike, key=lambda x: x[:2])[:MAX_PARTS]:
+    gaps = [(float(np.abs(_signature(suspect[part]) - target).max()), part) for part in parts]
+    alike = sorted((g for g in gaps if g[0] < PART_SHAPE), key=lambda g: g[0])   # stable: ties keep size order
+    for _, part in alike[:MAX_PARTS]:
         found = registration.register_robust(suspect[part], reference, spacing=spacing)
         if _whole_on_part(found, suspect, reference, spacing, tree):
             return found

@@ -28,7 +28,7 @@ from scipy.spatial import cKDTree
 __all__ = [
     "Similarity", "apply", "umeyama", "principal_frame", "register_covariance",
     "icp_similarity", "register_robust", "umeyama_batch", "ransac_similarity", "overlap",
-    "refine_part", "connected_parts", "shape_signature",
+    "refine_part", "connected_parts", "separate_objects", "shape_signature",
 ]
 
 
@@ -558,6 +558,31 @@ def connected_parts(points, radius, *, min_points=1):
     order = np.lexsort((first, -sizes))
     members = np.split(np.argsort(label, kind="stable"), np.cumsum(sizes)[:-1])
     return [members[c] for c in order if sizes[c] >= min_points]
+
+
+OBJECT_GAP = 4.0   # spacings: points closer than this belong to one object
+
+
+def separate_objects(points, spacing, *, min_points=1):
+    """The separate objects of a scene: its connected parts at ``OBJECT_GAP`` spacings.
+
+    A part holding 95 % of the points or more is the whole suspect, not an
+    object among others, and is left out.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+    spacing : float
+        Typical point spacing (the median nearest-neighbour distance).
+    min_points : int
+        Parts with fewer points are left out.
+
+    Returns
+    -------
+    list of (n_i,) int, the largest first; empty when the points form one object
+    """
+    parts = connected_parts(points, OBJECT_GAP * spacing, min_points=min_points)
+    return [p for p in parts if len(p) < 0.95 * len(points)]
 
 
 def shape_signature(points):

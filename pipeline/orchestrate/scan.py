@@ -109,14 +109,18 @@ def triage(suspect_path, descriptors, index_path):
     t0 = time.perf_counter()
     points = read_points(suspect_path).points
     names = list(descriptors)
-    dist = np.atleast_1d(descriptor_distance(d2_descriptor(points - points.mean(axis=0)),
-                                             np.array([descriptors[k] for k in names])))
-    index_ranking = []
+    shaped, index_ranking = {}, []
     if index_path:
         index = _index(index_path)
-        views = dict(zip(index.keys, index.shape_distances(points)))
-        dist = np.minimum(dist, [views.get(k, np.inf) for k in names])
+        shaped = dict(zip(index.keys, index.shape_distances(points)))
         index_ranking = [k for k, _ in index.rank(points, top_k=len(names))]
+    # assets the index lacks (unreadable when it was built) keep the catalogue's whole-asset D2
+    missing = [k for k in names if k not in shaped]
+    if missing:
+        whole = np.atleast_1d(descriptor_distance(d2_descriptor(points - points.mean(axis=0)),
+                                                  np.array([descriptors[k] for k in missing])))
+        shaped.update(zip(missing, whole))
+    dist = np.array([shaped[k] for k in names])
     order = np.argsort(dist, kind="stable")
     return {"path": str(suspect_path), "sha256": sha256_file(suspect_path), "n_points": len(points),
             "ranking": [names[i] for i in order], "distances": [float(dist[i]) for i in order],

@@ -2,7 +2,7 @@ import numpy as np
 
 from pipeline.kernels import attacks
 from pipeline.kernels.registration import (apply, connected_parts, register_covariance, register_robust,
-                                          shape_signature, umeyama)
+                                          separate_objects, shape_signature, umeyama)
 from tests.conftest import sphere_patch
 
 
@@ -81,3 +81,17 @@ def test_connected_parts_of_duplicates_and_of_a_zero_radius():
     far = grid + [100.0, 0.0, 0.0]
     parts = connected_parts(np.vstack([grid, far]), 1.5)
     assert [len(p) for p in parts] == [20000, 20000]
+
+
+def test_separate_objects_are_the_parts_of_a_scene_and_none_of_one_object():
+    rng = np.random.default_rng(6)
+    grid = np.stack(np.meshgrid(*[np.arange(12.0)] * 3), -1).reshape(-1, 3)    # spacing 1
+    scene = np.vstack([grid, grid[:800] + [30.0, 0.0, 0.0]])
+    objects = separate_objects(scene, 1.0, min_points=100)
+    assert [len(p) for p in objects] == [len(grid), 800]
+    # one object (a gap of 2 spacings is inside the object gap); at a finer spacing the gap
+    # splits it, but the rest is the whole suspect and the crumb is too small to count
+    near = np.vstack([grid, grid[:40] + [13.0, 0.0, 0.0]])
+    assert separate_objects(near, 1.0) == []
+    assert separate_objects(near[rng.permutation(len(near))], 0.25, min_points=100) == []
+    assert [len(p) for p in separate_objects(near, 0.25)] == [40]
