@@ -1,4 +1,4 @@
-"""pointmark benchmarks: ``make bench`` (or ``python bench/run.py [spectral] [catalog] [scan] [fingerprint] [issue] [cli] [leaks]``).
+"""pointmark benchmarks: ``make bench`` (or ``python bench/run.py [spectral] [catalog] [scan] [fingerprint] [issue] [cli] [leaks] [tile]``).
 
 Every figure is a ratio of two timings taken side by side in this one run,
 since shared machines are noisy; each timing is the best of a few repeats.
@@ -301,9 +301,18 @@ def leaks_bench():
     run()
 
 
+def tile_bench():
+    """Embedding 1- and 10-million-point LAZ tiles (issue 15; about 45 minutes): see bench/tile.py."""
+    sys.path.insert(0, str(ROOT / "bench"))
+    from tile import tile_bench as run
+
+    run()
+
+
 BENCHES = {"spectral": spectral_bench, "catalog": catalog_bench, "scan": scan_bench,
-           "fingerprint": fingerprint_bench, "issue": issue_bench, "cli": cli_bench, "leaks": leaks_bench}
-DEFAULT = ["spectral", "catalog", "scan", "fingerprint", "issue", "cli"]   # "leaks" runs when named
+           "fingerprint": fingerprint_bench, "issue": issue_bench, "cli": cli_bench, "leaks": leaks_bench,
+           "tile": tile_bench}
+DEFAULT = ["spectral", "catalog", "scan", "fingerprint", "issue", "cli"]   # "leaks" and "tile" run when named
 
 
 def main(argv):

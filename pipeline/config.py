@@ -83,6 +83,12 @@ WATERMARK = _section("Embedding parameters (paper, section 2.2).", {
                            "Cap, in the asset's units, on any point's motion (survey data: e.g. 0.01); "
                            "a cluster whose largest motion exceeds it is scaled down as a whole. "
                            "null: no cap.", exclusiveMinimum=0),
+    "tile_points": _p(("integer", "null"), None,
+                      "Large assets (LiDAR tiles, scanned scenes): plan clusters cell by cell over a grid of "
+                      "square cells holding about this many points, each covered by clusters of cluster_size, "
+                      "so planning time and memory are linear in the points; normals come from each "
+                      "cluster's own points.  Implies cover.  null: the whole asset at once.",
+                      minimum=1000),
     "code": _p(["repetition", "convolutional"], "repetition",
                "Channel code of the payload: repetition (the paper: each bit on c chips) or "
                "convolutional (rate 1/2, K = 7, the same m x c chips over the coded word, soft "
@@ -339,6 +345,9 @@ def validate(cfg, source="config"):
             check_code(watermark_params(cfg))
     except ValueError as exc:
         raise ConfigError(f"{source}: watermark.code: {exc}") from None
+    mark = cfg.get("watermark") or {}
+    if mark.get("tile_points") is not None and mark.get("seeds") is not None:
+        raise ConfigError(f"{source}: watermark.tile_points: tiles choose their own seeds; set seeds to null")
 
 
 # YAML aliases can make a small file expand to a huge (or endless) tree.

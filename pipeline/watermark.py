@@ -24,7 +24,7 @@ __all__ = [
     "cluster_basis", "cluster_normals", "modulate_cluster", "embed", "embed_with_bases", "detect",
     "detect_with_bases", "estimate_differences", "decode", "distortion", "WatermarkError",
     "Reference", "build_reference", "fingerprint_length", "fingerprint_displacement", "cluster_amplitude",
-    "capped",
+    "capped", "cluster_fingerprint", "check_count", "check_digest",
     "fingerprint_observation", "ReferenceMismatch",
 ]
 
@@ -57,6 +57,7 @@ class WatermarkParams:
     amplitude: str = "model"          # phi of the whole model (paper) or of each cluster
     max_displacement: float | None = None   # cap on any point's motion, in the asset's units
     code: str = "repetition"          # "repetition" (paper: each bit on c chips) or "convolutional"
+    tile_points: int | None = None    # large assets: clusters planned cell by cell (implies cover)
 
     @property
     def total_bits(self):
@@ -145,17 +146,27 @@ class Reference:
     def verify(self, recorded, source="the ledger"):
         """Raise :class:`ReferenceMismatch` naming what differs from ``recorded`` digests."""
         mine = self.digests()
-        if len(recorded["membership"]) != len(self.specs):
-            raise ReferenceMismatch(f"reference mismatch: {len(self.specs)} clusters rebuilt, "
-                                    f"{len(recorded['membership'])} recorded in {source}")
+        check_count(len(self.specs), recorded, source)
         for kind in ("membership", "basis"):
-            for i, (a, b) in enumerate(zip(mine[kind], recorded[kind])):
-                if a != b:
-                    what = "members" if kind == "membership" else "spectral basis"
-                    raise ReferenceMismatch(
-                        f"reference mismatch: cluster {i} {what} digest {a} differs from {b} recorded in "
-                        f"{source} (clustering, mesh or eigen-solver code or parameters changed); "
-                        f"refusing to report on this copy")
+            for i, digest_ in enumerate(mine[kind]):
+                check_digest(i, kind, digest_, recorded, source)
+
+
+def check_count(n_clusters, recorded, source):
+    """Raise :class:`ReferenceMismatch` unless ``recorded`` holds ``n_clusters`` clusters."""
+    if len(recorded["membership"]) != n_clusters:
+        raise ReferenceMismatch(f"reference mismatch: {n_clusters} clusters rebuilt, "
+                                f"{len(recorded['membership'])} recorded in {source}")
+
+
+def check_digest(index, kind, value, recorded, source):
+    """Raise :class:`ReferenceMismatch` when cluster ``index``'s ``kind`` digest is not the recorded one."""
+    if value != recorded[kind][index]:
+        what = "members" if kind == "membership" else "spectral basis"
+        raise ReferenceMismatch(
+            f"reference mismatch: cluster {index} {what} digest {value} differs from {recorded[kind][index]} "
+            f"recorded in {source} (clustering, mesh or eigen-solver code or parameters changed); "
+            f"refusing to report on this copy")
 
 
 def build_reference(points, params):
@@ -208,17 +219,37 @@ def fingerprint_displacement(reference, chips, params, points=None):
     """
     if params.amplitude == "cluster" and points is None:
         raise ValueError("amplitude 'cluster' needs the original's points")
+    count = 3 * params.total_bits * params.chip_rate
+    return [cluster_fingerprint(basis, None if reference.normals is None else reference.normals[c],
+                                chips[c * count:(c + 1) * count], reference.phi,
+                                None if points is None else points[spec.members], params)
+            for c, (spec, basis) in enumerate(zip(reference.specs, reference.bases))]
+
+
+def cluster_fingerprint(basis, normals, chips, phi, cluster_points, params):
+    """Displacement of one cluster's points for its share of a fingerprint.
+
+    Parameters
+    ----------
+    basis : (n_c, n_coefficients) float
+    normals : (n_c, 3) float or None
+    chips : (3 * total_bits * chip_rate,) float in {-1, +1}, axis-major
+    phi : float, largest bbox side of the whole model
+    cluster_points : (n_c, 3) float or None (needed with ``amplitude == "cluster"``)
+    params : WatermarkParams
+
+    Returns
+    -------
+    (n_c, 3) float
+    """
     count = params.total_bits * params.chip_rate
-    out = []
-    for c, (spec, basis) in enumerate(zip(reference.specs, reference.bases)):
-        amplitude = cluster_amplitude(params, reference.phi, None if points is None else points[spec.members])
-        x = chips[c * 3 * count:(c + 1) * 3 * count].reshape(3, count)
-        moved = basis[:, params.first_coefficient:params.first_coefficient + count] @ (amplitude * x.T)
-        if params.displacement == "normal":
-            cap = float(np.sqrt((moved**2).sum(axis=1).max()))
-            moved, _ = modulation.along_normals(moved, reference.normals[c], cap=cap)
-        out.append(capped(moved, params))
-    return out
+    amplitude = cluster_amplitude(params, phi, cluster_points)
+    x = np.asarray(chips).reshape(3, count)
+    moved = basis[:, params.first_coefficient:params.first_coefficient + count] @ (amplitude * x.T)
+    if params.displacement == "normal":
+        cap = float(np.sqrt((moved**2).sum(axis=1).max()))
+        moved, _ = modulation.along_normals(moved, normals, cap=cap)
+    return capped(moved, params)
 
 
 def fingerprint_observation(estimate, specs, params):
@@ -293,16 +324,17 @@ def plan_clusters(points, params):
             f"coefficients the payload needs ({params.total_bits} bits x chip rate {params.chip_rate}): "
             f"the payload is longer than the capacity of this model"
         )
-    seeds = _seed_indices(points, params)
-    sizes = np.full(len(seeds), params.cluster_size, dtype=np.int64)
-    labels = clustering.grow_clusters(points, seeds, sizes, on_touch=params.on_touch,
-                                      cover=params.cover)
     specs = []
-    for c, s in enumerate(seeds):
-        members = np.flatnonzero(labels == c)
-        if len(members) < params.n_coefficients + spectral.GUARD:
-            continue  # too small to carry the payload; recorded by its absence
-        specs.append(ClusterSpec(len(specs), int(s), int(params.cluster_size), members))
+    for cell in _cells(points, params):
+        seeds = _seed_indices(points[cell], params)
+        sizes = np.full(len(seeds), params.cluster_size, dtype=np.int64)
+        labels = clustering.grow_clusters(points[cell], seeds, sizes, on_touch=params.on_touch,
+                                          cover=params.cover or params.tile_points is not None)
+        for c, s in enumerate(seeds):
+            members = cell[labels == c]
+            if len(members) < params.n_coefficients + spectral.GUARD:
+                continue  # too small to carry the payload; recorded by its absence
+            specs.append(ClusterSpec(len(specs), int(cell[s]), int(params.cluster_size), members))
     if not specs:
         raise WatermarkError(
             f"no cluster reached the {params.n_coefficients + spectral.GUARD} points the payload needs "
@@ -312,10 +344,17 @@ def plan_clusters(points, params):
     return specs
 
 
+def _cells(points, params):
+    """Point indices planned together: the whole model, or the grid cells of a large one."""
+    if params.tile_points is None:
+        return [np.arange(len(points), dtype=np.int64)]
+    return clustering.grid_cells(points, params.tile_points)
+
+
 def _seed_indices(points, params):
     if params.seeds is None:
         n_seeds = params.n_clusters
-        if params.cover:
+        if params.cover or params.tile_points is not None:
             n_seeds = max(1, int(np.ceil(len(points) / params.cluster_size)))
         return clustering.farthest_point_seeds(points, min(n_seeds, len(points)))
     seeds = np.asarray(params.seeds)
@@ -429,10 +468,14 @@ def modulate_cluster(basis, cluster_index, material, bits, amplitude, params, no
 def cluster_normals(centred, members, params):
     """Normals of a cluster's points when the displacement needs them, else None.
 
-    Neighbours come from the whole model, so every process gets the same normals.
+    Neighbours come from the whole model, so every process gets the same
+    normals; with ``tile_points`` (large assets) from the cluster's own
+    points, so a cluster task needs no more than its cluster.
     """
     if params.displacement != "normal":
         return None
+    if params.tile_points is not None:
+        return resampling.estimate_normals(centred[members])
     return resampling.estimate_normals(centred, at=members)
 
 
@@ -506,7 +549,7 @@ def capped(moved, params):
     return moved if peak <= cap else moved * (cap / peak)
 
 
-def distortion(original, watermarked, side=None):
+def distortion(original, watermarked, side=None, cells=None):
     """Distortion metrics relative to the bbox diagonal.
 
     RMSE of the point displacements (same order) and the symmetric Hausdorff
@@ -523,6 +566,9 @@ def distortion(original, watermarked, side=None):
     side : dict, optional
         :func:`pipeline.kernels.distortion.original_side` of ``original``
         (saves recomputing it for every copy of one original).
+    cells : list of (n_t,) int, optional
+        Large scenes: the surface measures are computed cell by cell and
+        pooled (:func:`pipeline.kernels.distortion.pooled_distortion`).
 
     Returns
     -------
@@ -530,8 +576,13 @@ def distortion(original, watermarked, side=None):
     mrms_rel_diag, surface_hausdorff_rel_diag, normal_deviation_deg, msdm
     """
     diag = _diag(original)
-    rmse = float(np.sqrt(((watermarked - original) ** 2).sum(axis=1).mean()))
-    surface = surface_measures.surface_distortion(original, watermarked, side)
+    d = watermarked - original
+    rmse = float(np.sqrt(np.einsum("ij,ij->", d, d) / max(len(d), 1)))
+    del d
+    if cells is not None:
+        surface = surface_measures.pooled_distortion(original, watermarked, cells)
+    else:
+        surface = surface_measures.surface_distortion(original, watermarked, side)
     return {"rmse_rel_diag": rmse / diag, "hausdorff_rel_diag": surface["hausdorff"] / diag,
             "surface_rmse_rel_diag": surface["surface_rms_forward"] / diag,
             "mrms_rel_diag": surface["mrms"] / diag,

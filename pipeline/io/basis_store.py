@@ -29,6 +29,8 @@ def reference_params(params):
     """The parameters that decide a reference (not beta, not the layout)."""
     record = {k: getattr(params, k) for k in _REFERENCE_FIELDS}
     record["n_coefficients"] = params.n_coefficients
+    if params.tile_points is not None:          # absent when unset: older entries keep their keys
+        record["tile_points"] = params.tile_points
     return record
 
 
@@ -95,6 +97,10 @@ class BasisStore:
         if data is None:
             return None
         return float(data["radius"]), data["basis"], data.get("normals")
+
+    def has(self, key, name):
+        """Whether the entry holds a file ``name`` (not whether it loads)."""
+        return self._path(key, name).is_file()
 
     def save_array(self, key, name, array):
         """Any further array of an entry (detection aids: normals, spacing, grams)."""

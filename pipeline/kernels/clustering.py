@@ -21,7 +21,7 @@ import heapq
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["farthest_point_seeds", "nearest_indices", "grow_clusters"]
+__all__ = ["farthest_point_seeds", "nearest_indices", "grow_clusters", "grid_cells"]
 
 _FRONTIER_K = 16
 
@@ -53,6 +53,42 @@ def farthest_point_seeds(points, n_seeds):
         seeds.append(nxt)
         dist = np.minimum(dist, np.linalg.norm(points - points[nxt], axis=1))
     return np.asarray(seeds, dtype=np.int64)
+
+
+def grid_cells(points, cell_points):
+    """Split a point set into square cells of a grid over its two widest axes.
+
+    The cell side is chosen so that a cell holds ``cell_points`` points on
+    average over the bounding box, so the work per cell is bounded whatever
+    the size of the scene (a LiDAR tile is planned cell by cell in linear
+    time).
+
+    Parameters
+    ----------
+    points : (n, 3) float
+    cell_points : int
+        Mean points per cell.
+
+    Returns
+    -------
+    cells : list of (n_t,) int
+        Point indices of each non-empty cell, ascending, cells in row-major
+        order of the grid.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    n = len(points)
+    if n <= cell_points:
+        return [np.arange(n, dtype=np.int64)]
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    axes = np.sort(np.argsort(hi - lo)[1:])           # the two widest axes, in axis order
+    extent = np.maximum(hi[axes] - lo[axes], np.finfo(np.float64).tiny)
+    side = float(np.sqrt(extent.prod() * cell_points / n))
+    shape = np.maximum(np.ceil(extent / side), 1).astype(np.int64)
+    ij = np.minimum(((points[:, axes] - lo[axes]) / side).astype(np.int64), shape - 1)
+    label = ij[:, 0] * shape[1] + ij[:, 1]
+    order = np.argsort(label, kind="stable")
+    bounds = np.flatnonzero(np.diff(label[order])) + 1
+    return np.split(order, bounds)                     # stable: ascending within a cell
 
 
 def nearest_indices(points, coordinates):

@@ -24,7 +24,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["local_planes", "to_surface", "msdm", "original_side", "surface_distortion"]
+__all__ = ["local_planes", "to_surface", "msdm", "original_side", "surface_distortion", "pooled_distortion"]
+
+_BLOCK = 1 << 17      # queries per block of local_planes
 
 
 def local_planes(points, queries, k=16, tree=None):
@@ -45,14 +47,19 @@ def local_planes(points, queries, k=16, tree=None):
         Surface variation lambda_0 / sum(lambda) of the neighbourhood, in [0, 1/3].
     """
     k = min(k, len(points))
-    _, idx = (tree or cKDTree(points)).query(queries, k=k)
-    nbrs = points[idx.reshape(len(queries), k)]
-    centroids = nbrs.mean(axis=1)
-    centred = nbrs - centroids[:, None, :]
-    values, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", centred, centred))
-    total = values.sum(axis=1)
-    variation = np.where(total > 0, values[:, 0] / np.where(total > 0, total, 1.0), 0.0)
-    return centroids, vectors[:, :, 0], variation
+    tree = tree or cKDTree(points)
+    m = len(queries)
+    centroids, normals, variation = np.empty((m, 3)), np.empty((m, 3)), np.empty(m)
+    for a in range(0, m, _BLOCK):         # in blocks: (block, k, 3) temporaries, not (m, k, 3)
+        _, idx = tree.query(queries[a:a + _BLOCK], k=k)
+        nbrs = points[idx.reshape(-1, k)]
+        centroids[a:a + _BLOCK] = nbrs.mean(axis=1)
+        centred = nbrs - centroids[a:a + _BLOCK, None, :]
+        values, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", centred, centred))
+        total = values.sum(axis=1)
+        variation[a:a + _BLOCK] = np.where(total > 0, values[:, 0] / np.where(total > 0, total, 1.0), 0.0)
+        normals[a:a + _BLOCK] = vectors[:, :, 0]
+    return centroids, normals, variation
 
 
 def to_surface(queries, points, normals, nearest):
@@ -157,9 +164,42 @@ def surface_distortion(original, marked, side=None):
     return {
         "hausdorff": float(max(d_forward.max(), d_back.max())),
         "surface_rms_forward": forward_rms,
+        "surface_rms_backward": float(np.sqrt((backward**2).mean())),
         "mrms": max(forward_rms, float(np.sqrt((backward**2).mean()))),
         "surface_hausdorff": float(max(forward.max(), backward.max())),
         "normal_deviation_deg": float(np.degrees(angle).mean()),
         # roughness of the copy carried onto the original's points (nearest marked point)
         "msdm": msdm(side["variation"], v_marked[back], side["windows"]),
     }
+
+
+def pooled_distortion(original, marked, cells):
+    """:func:`surface_distortion` of a large scene, cell by cell, pooled.
+
+    Each cell's measures use only its own points (memory bounded by the
+    cell); RMS values pool by their squares, maxima by the maximum, means
+    and the MSDM cube mean weighted by the points.  The measures are local,
+    so pooling differs from the whole-scene figures only at cell borders.
+
+    Parameters
+    ----------
+    original, marked : (n, 3) float, corresponding rows (a copy of the same order)
+    cells : list of (n_t,) int, a partition of the rows
+
+    Returns
+    -------
+    dict, as :func:`surface_distortion`
+    """
+    parts = [(len(c), surface_distortion(original[c], marked[c])) for c in cells if len(c)]
+    weight = np.array([w for w, _ in parts], dtype=np.float64)
+    weight /= weight.sum()
+
+    def rms(name):
+        return float(np.sqrt(sum(w * p[name] ** 2 for w, (_, p) in zip(weight, parts))))
+
+    forward, backward = rms("surface_rms_forward"), rms("surface_rms_backward")
+    return {"hausdorff": max(p["hausdorff"] for _, p in parts),
+            "surface_rms_forward": forward, "surface_rms_backward": backward, "mrms": max(forward, backward),
+            "surface_hausdorff": max(p["surface_hausdorff"] for _, p in parts),
+            "normal_deviation_deg": float(sum(w * p["normal_deviation_deg"] for w, (_, p) in zip(weight, parts))),
+            "msdm": float(np.cbrt(sum(w * p["msdm"] ** 3 for w, (_, p) in zip(weight, parts))))}

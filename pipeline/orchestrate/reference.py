@@ -12,11 +12,11 @@ from __future__ import annotations
 import numpy as np
 
 from ..io.basis_store import BasisStore
-from ..kernels import resampling
-from ..watermark import (ClusterSpec, Reference, cluster_basis, cluster_normals, frame_of,
-                         plan_clusters)
+from ..kernels import digest, resampling
+from ..watermark import (ClusterSpec, Reference, WatermarkError, check_count, check_digest, cluster_basis,
+                         cluster_normals, frame_of, plan_clusters)
 
-__all__ = ["plan_reference", "cluster_reference", "load_reference"]
+__all__ = ["plan_reference", "cluster_reference", "load_reference", "verified_clusters"]
 
 
 def plan_reference(points, params, store, key):
@@ -41,15 +41,28 @@ def plan_reference(points, params, store, key):
     if meta is not None:
         centre, phi, seeds, members = meta
         specs = [ClusterSpec(i, int(s), int(params.cluster_size), m) for i, (s, m) in enumerate(zip(seeds, members))]
-        return centre, phi, specs
-    frame = frame_of(points)
-    specs = plan_clusters(points - frame.centre, params)
-    store.save_meta(key, frame.centre, frame.phi, [s.seed_index for s in specs], [s.members for s in specs])
-    return frame.centre, frame.phi, specs
+    else:
+        frame = frame_of(points)
+        centre, phi = frame.centre, frame.phi
+        specs = plan_clusters(points - centre, params)
+        store.save_meta(key, centre, phi, [s.seed_index for s in specs], [s.members for s in specs])
+    if params.tile_points is not None:
+        # tiled (large) assets: each cluster task reads its own points, not the whole file
+        for s in specs:
+            if not store.has(key, _cluster_points(s.index)):
+                store.save_array(key, _cluster_points(s.index), points[s.members] - centre)
+    return centre, phi, specs
+
+
+def _cluster_points(index):
+    return f"points-{index}"
 
 
 def cluster_reference(points, centre, spec, params, store, key):
     """Radius, basis and normals of one cluster, from the store or computed and saved.
+
+    ``points`` may be None for a tiled asset (``params.tile_points``): the
+    cluster's points then come from the store, where the plan put them.
 
     Returns
     -------
@@ -61,11 +74,35 @@ def cluster_reference(points, centre, spec, params, store, key):
     cached = store.load_cluster(key, spec.index)
     if cached is not None and cached[1].shape == (len(spec.members), params.n_coefficients):
         return cached
-    centred = points - centre
-    radius, basis = cluster_basis(centred[spec.members], params)
-    normals = cluster_normals(centred, spec.members, params)
+    if points is None:
+        local = store.load_array(key, _cluster_points(spec.index))
+        if params.tile_points is None or local is None or local.shape != (len(spec.members), 3):
+            raise WatermarkError(f"the basis store {store.folder} lacks the points of cluster {spec.index}")
+        centred, members = local, np.arange(len(local))
+    else:
+        centred, members = points - centre, spec.members
+    radius, basis = cluster_basis(centred[members], params)
+    normals = cluster_normals(centred, members, params)
     store.save_cluster(key, spec.index, radius, basis, normals)
     return radius, basis, normals
+
+
+def verified_clusters(points, centre, specs, params, store, key, recorded, source="the ledger"):
+    """Each cluster's (spec, radius, basis, normals), checked against the recorded digests, one at a time.
+
+    The memory holds one basis at a time, however many clusters a large asset has.
+
+    Raises
+    ------
+    ReferenceMismatch
+        At the first cluster whose members or basis differ from ``recorded``.
+    """
+    check_count(len(specs), recorded, source)
+    for spec in specs:
+        check_digest(spec.index, "membership", digest.membership_digest(spec.members), recorded, source)
+        radius, basis, normals = cluster_reference(points, centre, spec, params, store, key)
+        check_digest(spec.index, "basis", digest.basis_digest(basis), recorded, source)
+        yield spec, radius, basis, normals
 
 
 def _aid(store, key, name, compute):

@@ -86,7 +86,7 @@ class Job:
 # Fields added after a ledger format was first written: left out of the
 # generation id at their defaults, so a rerun of an older ledger with an
 # unchanged config stays in its generation
-_LATER_DEFAULTS = {"amplitude": "model", "max_displacement": None}
+_LATER_DEFAULTS = {"amplitude": "model", "max_displacement": None, "tile_points": None}
 # Issued copies carry recipient fingerprints, not the message: its channel code changes no copy.
 _NOT_IN_COPIES = ("code",)
 

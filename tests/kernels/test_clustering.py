@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from pipeline.kernels.clustering import farthest_point_seeds, grow_clusters, nearest_indices
+from pipeline.kernels.clustering import farthest_point_seeds, grid_cells, grow_clusters, nearest_indices
 from tests.conftest import sphere_patch
 
 
@@ -55,3 +55,24 @@ def test_seed_coordinates_map_to_nearest_points():
 def test_duplicate_seeds_are_rejected():
     with pytest.raises(ValueError, match="distinct"):
         grow_clusters(sphere_patch(100), [3, 3], 10)
+
+
+def test_grid_cells_partition_a_tile_into_squares_of_about_the_asked_size():
+    rng = np.random.default_rng(3)
+    pts = np.column_stack([rng.uniform(0, 400, 50_000), rng.uniform(0, 100, 50_000), rng.normal(0, 1, 50_000)])
+    cells = grid_cells(pts, 2000)
+    assert np.array_equal(np.sort(np.concatenate(cells)), np.arange(len(pts)))
+    assert all(np.all(np.diff(c) > 0) for c in cells)              # ascending within a cell
+    assert 20 <= len(cells) <= 30                                  # 50,000 / 2,000 = 25
+    side = np.sqrt(400 * 100 * 2000 / 50_000)
+    for c in cells:                                                # squares over x and y, not z
+        extent = np.ptp(pts[c][:, :2], axis=0)
+        assert (extent <= side * (1 + 1e-9)).all()
+    assert max(len(c) for c in cells) < 2 * 2000
+    assert [c.tolist() for c in grid_cells(pts, 2000)] == [c.tolist() for c in cells]
+
+
+def test_a_set_no_larger_than_a_cell_is_one_cell():
+    pts = sphere_patch(500)
+    (only,) = grid_cells(pts, 500)
+    assert np.array_equal(only, np.arange(500))

@@ -40,3 +40,29 @@ def test_the_perceptual_measures_see_roughness_that_mrms_cannot(sheet):
     assert d_rough["msdm"] > 10 * d_smooth["msdm"]
     assert d_rough["normal_deviation_deg"] > 2 * d_smooth["normal_deviation_deg"]
     assert 0 <= d_smooth["msdm"] < d_rough["msdm"] <= 1
+
+
+def test_local_planes_in_blocks_equal_one_pass(monkeypatch):
+    rng = np.random.default_rng(5)
+    pts = rng.normal(size=(3000, 3)) * [1, 1, 0.05]
+    whole = distortion.local_planes(pts, pts[:1000])
+    monkeypatch.setattr(distortion, "_BLOCK", 77)
+    blocks = distortion.local_planes(pts, pts[:1000])
+    for a, b in zip(whole, blocks):
+        assert np.array_equal(a, b)
+
+
+def test_pooled_measures_of_one_cell_are_the_whole_and_of_four_cells_are_close():
+    rng = np.random.default_rng(6)
+    grid = np.stack(np.meshgrid(np.linspace(0, 1, 80), np.linspace(0, 1, 80)), -1).reshape(-1, 2)
+    sheet = np.column_stack([grid, 0.05 * np.sin(6 * grid[:, 0])])
+    marked = sheet + rng.normal(0, 2e-3, sheet.shape)
+    whole = distortion.surface_distortion(sheet, marked)
+    one = distortion.pooled_distortion(sheet, marked, [np.arange(len(sheet))])
+    assert one == whole
+    quarters = [np.flatnonzero(((grid[:, 0] < 0.5) == a) & ((grid[:, 1] < 0.5) == b))
+                for a in (True, False) for b in (True, False)]
+    pooled = distortion.pooled_distortion(sheet, marked, quarters)
+    for name in ("mrms", "surface_rms_forward", "normal_deviation_deg", "msdm"):
+        assert pooled[name] == pytest.approx(whole[name], rel=0.1), name
+    assert pooled["hausdorff"] == pytest.approx(whole["hausdorff"], rel=0.1)
