@@ -99,7 +99,7 @@ def tile_bench(sizes=(1_000_000, 10_000_000)):
     import dask
     from distributed import Client, LocalCluster
 
-    from pipeline.orchestrate.run import PINNED_THREADS
+    from pipeline.orchestrate.run import WORKER_ENV
 
     tiles = {}
     for n in sizes:
@@ -107,7 +107,7 @@ def tile_bench(sizes=(1_000_000, 10_000_000)):
         if not tiles[n].is_file():
             generate_tile(tiles[n], n, seed=n)
     dask.config.set({"distributed.worker.multiprocessing-method": "spawn",
-                     "distributed.nanny.pre-spawn-environ": PINNED_THREADS,
+                     "distributed.nanny.pre-spawn-environ": WORKER_ENV,
                      "distributed.worker.profile.enabled": False})
     results = {}
     for n in sizes:          # a fresh cluster per tile: each worker's peak is that tile's

@@ -87,7 +87,7 @@ WATERMARK = _section("Embedding parameters (paper, section 2.2).", {
                       "Large assets (LiDAR tiles, scanned scenes): plan clusters cell by cell over a grid of "
                       "square cells holding about this many points, each covered by clusters of cluster_size, "
                       "so planning time and memory are linear in the points; normals come from each "
-                      "cluster's own points.  Implies cover.  null: the whole asset at once.",
+                      "cluster's own points.  Needs cover: true and no seeds.  null: the whole asset at once.",
                       minimum=1000),
     "code": _p(["repetition", "convolutional"], "repetition",
                "Channel code of the payload: repetition (the paper: each bit on c chips) or "
@@ -346,8 +346,13 @@ def validate(cfg, source="config"):
     except ValueError as exc:
         raise ConfigError(f"{source}: watermark.code: {exc}") from None
     mark = cfg.get("watermark") or {}
-    if mark.get("tile_points") is not None and mark.get("seeds") is not None:
-        raise ConfigError(f"{source}: watermark.tile_points: tiles choose their own seeds; set seeds to null")
+    if mark.get("tile_points") is not None:
+        problem = ("tiles choose their own seeds; set seeds to null" if mark.get("seeds") is not None else
+                   "tiles are covered by clusters; set cover to true" if not mark.get("cover", False) else
+                   "a cell must hold at least one cluster; raise it to cluster_size or more"
+                   if mark["tile_points"] < mark.get("cluster_size", 4000) else None)
+        if problem:
+            raise ConfigError(f"{source}: watermark.tile_points: {problem}")
 
 
 # YAML aliases can make a small file expand to a huge (or endless) tree.

@@ -348,6 +348,8 @@ def _cells(points, params):
     """Point indices planned together: the whole model, or the grid cells of a large one."""
     if params.tile_points is None:
         return [np.arange(len(points), dtype=np.int64)]
+    if params.seeds is not None:
+        raise WatermarkError("tile_points plans its own seeds in every cell; given seeds cannot apply")
     return clustering.grid_cells(points, params.tile_points)
 
 
@@ -576,9 +578,9 @@ def distortion(original, watermarked, side=None, cells=None):
     mrms_rel_diag, surface_hausdorff_rel_diag, normal_deviation_deg, msdm
     """
     diag = _diag(original)
-    d = watermarked - original
-    rmse = float(np.sqrt(np.einsum("ij,ij->", d, d) / max(len(d), 1)))
-    del d
+    squares = sum(float(np.einsum("ij,ij->", d, d)) for d in
+                  (watermarked[a:a + 2**20] - original[a:a + 2**20] for a in range(0, len(original), 2**20)))
+    rmse = float(np.sqrt(squares / max(len(original), 1)))
     if cells is not None:
         surface = surface_measures.pooled_distortion(original, watermarked, cells)
     else:

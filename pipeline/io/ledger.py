@@ -111,13 +111,14 @@ class Ledger:
         from ..kernels.keys import new_salt
 
         self.folder.mkdir(parents=True, exist_ok=True)
-        text = json.dumps({"salt": new_salt(), "created_at": _now().isoformat()}) + "\n"
-        try:  # exclusive create: two first runs agree on one salt
-            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        tmp = self.folder / f".deployment.{uuid.uuid4().hex}.tmp"
+        tmp.write_text(json.dumps({"salt": new_salt(), "created_at": _now().isoformat()}) + "\n")
+        try:  # a hard link is atomic and exclusive: two first runs agree on one salt, and no
+            os.link(tmp, path)       # reader ever sees the file before its contents
         except FileExistsError:
-            return self.salt()
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
+            pass
+        finally:
+            tmp.unlink(missing_ok=True)
         return self.salt()
 
     # -- rows ---------------------------------------------------------------

@@ -26,7 +26,8 @@ from .pcd import pcd_from_points, read_pcd, write_pcd
 from .ply import PlyError, read_ply, write_ply
 from .text import pts_from_points, read_pts, read_xyz, write_text, xyz_from_points
 
-__all__ = ["PointCloud", "InputError", "read_points", "write_points", "write_array", "check_output",
+__all__ = ["PointCloud", "InputError", "read_points", "read_coordinates", "write_points", "write_array",
+           "check_output",
            "check_distinct",
            "atomic_write_bytes", "sha256_file", "FORMATS"]
 
@@ -396,20 +397,48 @@ def _check_las_writable(header):
                          f"file cannot be written back; convert it to a version that does first") from None
 
 
+LAS_CHUNK = 1 << 20     # points written or read back at a time: no whole copy of a large tile's records
+
+
 def _write_las(las, points, tmp):
     import laspy
 
-    out = laspy.LasData(header=las.header, points=las.points.copy())
-    try:
-        out.x, out.y, out.z = points[:, 0], points[:, 1], points[:, 2]
-    except (OverflowError, ValueError):
-        raise ValueError("the coordinates do not fit the file's scale and offset (32-bit integers); "
-                         "the header cannot hold them") from None
     # header strings that are not ASCII (they were read as they are) must not stop the write
-    with laspy.open(str(tmp), mode="w", header=out.header, encoding_errors="replace") as writer:
-        writer.write_points(out.points)
-        if out.header.evlrs:
-            writer.write_evlrs(out.header.evlrs)
+    with laspy.open(str(tmp), mode="w", header=las.header, encoding_errors="replace") as writer:
+        for a in range(0, len(points), LAS_CHUNK):
+            part = laspy.ScaleAwarePointRecord(las.points.array[a:a + LAS_CHUNK].copy(), las.header.point_format,
+                                               las.header.scales, las.header.offsets)
+            try:
+                part.x, part.y, part.z = (points[a:a + LAS_CHUNK, i] for i in range(3))
+            except (OverflowError, ValueError):
+                raise ValueError("the coordinates do not fit the file's scale and offset (32-bit integers); "
+                                 "the header cannot hold them") from None
+            writer.write_points(part)
+        if las.header.evlrs:
+            writer.write_evlrs(las.header.evlrs)
+
+
+def read_coordinates(path):
+    """The coordinates of a file this tool wrote, (n, 3) float; LAS/LAZ chunk by chunk.
+
+    For the read-back check of an issued copy: a large tile's point records
+    are never all in memory at once.  Other formats go through
+    :func:`read_points`.
+    """
+    path = Path(path)
+    if format_of(path) not in ("las", "laz"):
+        return read_points(path).points
+    import laspy
+
+    with _native_stderr_held(), laspy.open(str(path)) as reader:
+        out = np.empty((reader.header.point_count, 3))
+        a = 0
+        for part in reader.chunk_iterator(LAS_CHUNK):
+            out[a:a + len(part)] = np.column_stack([np.asarray(part.x), np.asarray(part.y), np.asarray(part.z)])
+            a += len(part)
+    if a != len(out):
+        raise InputError(f"{path}: the header declares {len(out)} points, {a} could be read")
+    return out
 
 
 def _serialise(cloud, points, path):

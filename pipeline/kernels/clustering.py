@@ -56,12 +56,14 @@ def farthest_point_seeds(points, n_seeds):
 
 
 def grid_cells(points, cell_points):
-    """Split a point set into square cells of a grid over its two widest axes.
+    """Split a point set into cells of a grid over its two widest axes.
 
-    The cell side is chosen so that a cell holds ``cell_points`` points on
-    average over the bounding box, so the work per cell is bounded whatever
-    the size of the scene (a LiDAR tile is planned cell by cell in linear
-    time).
+    The grid has about ``n / cell_points`` nearly square cells over the
+    bounding box (no thin slivers at its edges); a cell holding more than
+    twice ``cell_points`` (dense parts of a scanned scene) is halved at its
+    median along its longer side until it holds no more.  The work per cell
+    is therefore bounded whatever the size and density of the scene, and a
+    tile is planned cell by cell in time linear in its points.
 
     Parameters
     ----------
@@ -72,23 +74,36 @@ def grid_cells(points, cell_points):
     Returns
     -------
     cells : list of (n_t,) int
-        Point indices of each non-empty cell, ascending, cells in row-major
-        order of the grid.
+        Point indices of each non-empty cell, ascending; grid cells in
+        row-major order, the halves of a split cell low side first.
     """
     points = np.asarray(points, dtype=np.float64)
     n = len(points)
     if n <= cell_points:
         return [np.arange(n, dtype=np.int64)]
     lo, hi = points.min(axis=0), points.max(axis=0)
-    axes = np.sort(np.argsort(hi - lo)[1:])           # the two widest axes, in axis order
+    axes = np.sort(np.argsort(hi - lo, kind="stable")[1:])    # the two widest axes, in axis order
     extent = np.maximum(hi[axes] - lo[axes], np.finfo(np.float64).tiny)
     side = float(np.sqrt(extent.prod() * cell_points / n))
-    shape = np.maximum(np.ceil(extent / side), 1).astype(np.int64)
-    ij = np.minimum(((points[:, axes] - lo[axes]) / side).astype(np.int64), shape - 1)
+    shape = np.maximum(np.round(extent / side), 1).astype(np.int64)
+    ij = np.minimum(((points[:, axes] - lo[axes]) / (extent / shape)).astype(np.int64), shape - 1)
     label = ij[:, 0] * shape[1] + ij[:, 1]
-    order = np.argsort(label, kind="stable")
-    bounds = np.flatnonzero(np.diff(label[order])) + 1
-    return np.split(order, bounds)                     # stable: ascending within a cell
+    order = np.argsort(label, kind="stable")                   # stable: ascending within a cell
+    cells = []
+    for cell in np.split(order, np.flatnonzero(np.diff(label[order])) + 1):
+        cells += _halve(points[:, axes], cell, 2 * cell_points)
+    return cells
+
+
+def _halve(plane, cell, limit):
+    """A cell, or its halves at the median of its longer side, recursively, until none exceeds ``limit``."""
+    if len(cell) <= limit:
+        return [cell]
+    xy = plane[cell]
+    along = int(np.argmax(np.ptp(xy, axis=0)))
+    order = np.argsort(xy[:, along], kind="stable")
+    half = len(cell) // 2
+    return _halve(plane, np.sort(cell[order[:half]]), limit) + _halve(plane, np.sort(cell[order[half:]]), limit)
 
 
 def nearest_indices(points, coordinates):

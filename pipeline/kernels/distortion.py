@@ -26,7 +26,7 @@ from scipy.spatial import cKDTree
 
 __all__ = ["local_planes", "to_surface", "msdm", "original_side", "surface_distortion", "pooled_distortion"]
 
-_BLOCK = 1 << 17      # queries per block of local_planes
+_BLOCK = 1 << 15      # queries per block of local_planes
 
 
 def local_planes(points, queries, k=16, tree=None):
@@ -146,7 +146,8 @@ def surface_distortion(original, marked, side=None):
     -------
     dict, distances in the points' units
         hausdorff (nearest points, both ways), surface_rms_forward (marked
-        points to the original's surface), mrms, surface_hausdorff,
+        points to the original's surface), surface_rms_backward (the
+        original's points to the copy's surface), mrms, surface_hausdorff,
         normal_deviation_deg, msdm.
     """
     side = side or original_side(original)
@@ -179,7 +180,9 @@ def pooled_distortion(original, marked, cells):
     Each cell's measures use only its own points (memory bounded by the
     cell); RMS values pool by their squares, maxima by the maximum, means
     and the MSDM cube mean weighted by the points.  The measures are local,
-    so pooling differs from the whole-scene figures only at cell borders.
+    so pooling differs from the whole-scene figures near cell borders (whose
+    nearest neighbours are sought within the cell: the Hausdorff distance is
+    an upper bound) and in MSDM, whose windows are sampled per cell.
 
     Parameters
     ----------

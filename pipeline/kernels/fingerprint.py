@@ -67,10 +67,10 @@ def chip_bank(material, label, recipients, length):
     return np.frombuffer(raw, dtype=np.uint8).reshape(len(recipients), n_bytes).copy()
 
 
-def signs(bank, length):
-    """Unpacked chips, (n_recipients, length) float64 in {-1, +1}."""
-    bits = np.unpackbits(np.atleast_2d(bank), axis=1)[:, :length]
-    return 2.0 * bits - 1.0
+def signs(bank, length, dtype=np.float64):
+    """Unpacked chips, (n_recipients, length) in {-1, +1} (float64, or e.g. int8 to save memory)."""
+    bits = np.unpackbits(np.atleast_2d(bank), axis=1)[:, :length].astype(dtype)
+    return 2 * bits - 1
 
 
 def quantize(y, bits=8):

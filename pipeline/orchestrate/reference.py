@@ -16,11 +16,20 @@ from ..kernels import digest, resampling
 from ..watermark import (ClusterSpec, Reference, WatermarkError, check_count, check_digest, cluster_basis,
                          cluster_normals, frame_of, plan_clusters)
 
-__all__ = ["plan_reference", "cluster_reference", "load_reference", "verified_clusters"]
+__all__ = ["plan_reference", "cluster_reference", "load_reference", "verified_clusters", "cluster_points_name",
+           "MissingClusterPoints"]
 
 
-def plan_reference(points, params, store, key):
+class MissingClusterPoints(WatermarkError):
+    """A tiled cluster's points are not in the store (or do not load): read the asset instead."""
+
+
+def plan_reference(points, params, store, key, cluster_points=False):
     """Frame and clusters of an original, from the store or computed and saved.
+
+    With ``cluster_points`` (the catalogue's plan task) a tiled asset's
+    clusters also get their points stored, so each cluster task reads its
+    cluster, not the whole asset.
 
     Parameters
     ----------
@@ -29,6 +38,7 @@ def plan_reference(points, params, store, key):
     store : BasisStore or path
     key : str
         The store entry (``BasisStore.key(source_sha256, params)``).
+    cluster_points : bool
 
     Returns
     -------
@@ -46,15 +56,15 @@ def plan_reference(points, params, store, key):
         centre, phi = frame.centre, frame.phi
         specs = plan_clusters(points - centre, params)
         store.save_meta(key, centre, phi, [s.seed_index for s in specs], [s.members for s in specs])
-    if params.tile_points is not None:
-        # tiled (large) assets: each cluster task reads its own points, not the whole file
+    if cluster_points and params.tile_points is not None:
         for s in specs:
-            if not store.has(key, _cluster_points(s.index)):
-                store.save_array(key, _cluster_points(s.index), points[s.members] - centre)
+            if not store.has(key, cluster_points_name(s.index)):
+                store.save_array(key, cluster_points_name(s.index), points[s.members] - centre)
     return centre, phi, specs
 
 
-def _cluster_points(index):
+def cluster_points_name(index):
+    """Store name of a tiled cluster's points (centred), written by the plan task."""
     return f"points-{index}"
 
 
@@ -62,7 +72,8 @@ def cluster_reference(points, centre, spec, params, store, key):
     """Radius, basis and normals of one cluster, from the store or computed and saved.
 
     ``points`` may be None for a tiled asset (``params.tile_points``): the
-    cluster's points then come from the store, where the plan put them.
+    cluster's points then come from the store, where the plan put them
+    (:class:`MissingClusterPoints` when they cannot be loaded).
 
     Returns
     -------
@@ -75,10 +86,14 @@ def cluster_reference(points, centre, spec, params, store, key):
     if cached is not None and cached[1].shape == (len(spec.members), params.n_coefficients):
         return cached
     if points is None:
-        local = store.load_array(key, _cluster_points(spec.index))
+        local = store.load_array(key, cluster_points_name(spec.index))
         if params.tile_points is None or local is None or local.shape != (len(spec.members), 3):
-            raise WatermarkError(f"the basis store {store.folder} lacks the points of cluster {spec.index}")
+            raise MissingClusterPoints(f"the basis store {store.folder} lacks the points of cluster {spec.index}")
         centred, members = local, np.arange(len(local))
+    elif params.tile_points is not None:
+        # tiled: the cluster alone decides its basis and normals; no copy of the whole asset per cluster
+        centred = points[spec.members] - centre
+        members = np.arange(len(centred))
     else:
         centred, members = points - centre, spec.members
     radius, basis = cluster_basis(centred[members], params)
@@ -113,10 +128,23 @@ def _aid(store, key, name, compute):
     return value
 
 
-def detection_aids(points, centre, specs, bases, params, store, key):
-    """The original's normals and spacing, and the clusters' normal-model Grams, from the store or computed."""
+def detection_aids(points, centre, specs, bases, params, store, key, cluster_normals=None):
+    """The original's normals and spacing, and the clusters' normal-model Grams, from the store or computed.
+
+    A tiled asset's clusters were moved along the normals of their own
+    points (``cluster_normals``, one (n_c, 3) per cluster): those rows of the
+    model normals are theirs, so detection models the motion embedding made.
+    """
     centred = points - centre
-    normals = _aid(store, key, "model-normals", lambda: resampling.estimate_normals(centred))
+
+    def model_normals():
+        normals = resampling.estimate_normals(centred)
+        if params.tile_points is not None and cluster_normals is not None:
+            for s, n in zip(specs, cluster_normals):
+                normals[s.members] = n
+        return normals
+
+    normals = _aid(store, key, "model-normals", model_normals)
     spacing = _aid(store, key, "model-spacing", lambda: resampling.nearest_spacing(centred))
     grams = None
     if params.displacement == "normal":
@@ -157,7 +185,8 @@ def load_reference(points, params, store, key, recorded=None, source="the ledger
     aids = {}
     if detection:
         aids = dict(zip(("model_normals", "spacing", "grams"),
-                        detection_aids(points, np.asarray(centre), specs, bases, params, store, key)))
+                        detection_aids(points, np.asarray(centre), specs, bases, params, store, key,
+                                       normals)))
     ref = Reference(np.asarray(centre), float(phi), specs, bases, normals, [float(p[0]) for p in parts], **aids)
     if recorded is not None:
         ref.verify(recorded, source)

@@ -2,11 +2,13 @@
 
 plan (frame, clusters) -> one task per cluster (spectral basis, normals) ->
 issue tasks (one per chunk of recipients: synthesis, write, read-back check).
-Every task reads its asset itself and shares references through the basis
-store, so adding a recipient later costs a synthesis and a write.  An issue
-task holds one spectral basis at a time and the copies of as many of its
-recipients as fit in MARKED_BYTES (one at least), so its memory is bounded
-by the asset, not by its clusters or recipients.
+Tasks read their own data and share references through the basis store
+(a tiled asset's cluster task reads only its cluster's points from there),
+so adding a recipient later costs a synthesis and a write.  An issue task
+reads the bases once, one at a time, and holds the marked copies of its
+recipients when they fit in MARKED_BYTES, else one copy at a time built from
+scratch files: its memory is bounded by the asset, not by its clusters or
+recipients.
 """
 
 from __future__ import annotations
@@ -19,12 +21,14 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..io.pointcloud import InputError, check_distinct, read_points, sha256_file, write_points
+from ..io.pointcloud import InputError, check_distinct, read_coordinates, read_points, sha256_file, write_points
 from ..io.basis_store import BasisStore
+from ..io.scratch import Scratch
 from ..kernels import clustering, digest, fingerprint
 from ..kernels import distortion as surface_measures
 from ..watermark import WatermarkError, cluster_fingerprint, distortion, fingerprint_length
-from .reference import cluster_reference, plan_reference, verified_clusters
+from .reference import (MissingClusterPoints, cluster_points_name, cluster_reference, plan_reference,
+                        verified_clusters)
 
 __all__ = ["AssetPlan", "plan_asset", "cluster_task", "issue_task", "CopyIntegrityError", "copy_label"]
 
@@ -70,7 +74,7 @@ def plan_asset(asset_key, path, source_sha256, params, store, store_key):
     points = _points(path, source_sha256).points
     check_distinct(path, points)          # repeated points: a failed row, as in `pointmark embed`
     try:
-        centre, phi, specs = plan_reference(points, params, store, store_key)
+        centre, phi, specs = plan_reference(points, params, store, store_key, cluster_points=True)
     except WatermarkError as exc:
         raise InputError(f"{path}: {exc}") from None
     return AssetPlan(asset_key, str(path), source_sha256, len(points), centre, phi, specs, str(store),
@@ -86,10 +90,19 @@ def cluster_task(plan, cluster_pos, params):
     """
     t0 = time.perf_counter()
     spec = plan.clusters[cluster_pos]
-    points = None       # a tiled asset's plan stored each cluster's points: no whole read per cluster
-    if params.tile_points is None or not BasisStore(plan.store).has(plan.store_key, f"points-{spec.index}"):
+    part = None
+    if params.tile_points is not None:      # the plan stored the cluster's points: no read of the asset
+        try:
+            part = cluster_reference(None, plan.centre, spec, params, plan.store, plan.store_key)
+        except MissingClusterPoints:
+            pass                            # not stored, or damaged: read the asset
+    if part is None:
         points = _points(plan.path, plan.source_sha256).points
-    radius, basis, _ = cluster_reference(points, plan.centre, spec, params, plan.store, plan.store_key)
+        part = cluster_reference(points, plan.centre, spec, params, plan.store, plan.store_key)
+        if params.tile_points is not None:  # stored again for the next run
+            BasisStore(plan.store).save_array(plan.store_key, cluster_points_name(spec.index),
+                                              points[spec.members] - plan.centre)
+    radius, basis, _ = part
     return {"radius": float(radius), "membership": digest.membership_digest(spec.members),
             "basis": digest.basis_digest(basis), "seconds": time.perf_counter() - t0}
 
@@ -116,76 +129,101 @@ def issue_task(plan, cluster_results, material, items, params, row_base):
     points = cloud.points
     recorded = {"membership": [c["membership"] for c in cluster_results],
                 "basis": [c["basis"] for c in cluster_results]}
-    centre, phi, specs = plan_reference(points, params, plan.store, plan.store_key)
+    centre, phi, specs = plan.centre, plan.phi, plan.clusters      # checked against the digests below
     length = fingerprint_length(len(specs), params)
     bank = fingerprint.chip_bank(material, copy_label(plan.asset_key, row_base["generation"]),
                                  [r for r, _ in items], length)
-    measure = _distortion_measure(points)
+    measure = _distortion_measure(points, params)
     shared = {**row_base, "n_points": plan.n_points, "fingerprint_length": length,
               "cluster_seeds": [s.seed_index for s in specs],
               "cluster_sizes": [int(len(s.members)) for s in specs],
               "cluster_radii": [c["radius"] for c in cluster_results],
               "cluster_membership_digests": recorded["membership"],
               "cluster_basis_digests": recorded["basis"], "tool_version": __version__}
+    chips = fingerprint.signs(bank, length, dtype=np.int8)          # (recipients, length), +-1
+    t0 = time.perf_counter()
+    copies = _marked_copies(points, centre, phi, specs, chips, params, plan, recorded,
+                            Path(items[0][1]).parent if items else Path(plan.store))
     rows = []
-    per_group = max(1, MARKED_BYTES // max(points.nbytes, 1))
-    for a in range(0, len(items), per_group):
-        group = list(enumerate(items))[a:a + per_group]
-        t0 = time.perf_counter()
-        marked = _marked_copies(points, centre, phi, specs, [bank[j] for j, _ in group], length, params,
-                                plan, recorded)
-        seconds = (time.perf_counter() - t0) / len(group)
-        while group:
-            (_, (recipient, out)), copy = group.pop(0), marked.pop(0)
-            t0 = time.perf_counter()
-            rows.append({**shared, "recipient": recipient, **_publish(cloud, points, copy, Path(out), measure),
-                         "seconds_copy": seconds + time.perf_counter() - t0, "status": "ok", "error": None})
-            del copy
+    for (recipient, out), copy in zip(items, copies):
+        row, written = _publish(cloud, points, copy, Path(out))
+        del copy                       # the copy as intended is not needed for the measures
+        rows.append({**shared, "recipient": recipient, **row, **measure(written), "status": "ok", "error": None})
+        del written
+    for row in rows:       # the bases are read once for all the task's copies: its mean time per copy
+        row["seconds_copy"] = (time.perf_counter() - t0) / len(rows)
     return rows
 
 
-# the marked copies an issue task holds at once: as many as fit, at least one
+# the marked copies an issue task holds at once; more recipients than fit go through scratch files
 MARKED_BYTES = 256 * 2**20
-# above this many points the copy's surface measures are pooled over grid cells of this many
-POOLED_POINTS = 1_000_000
+# above this many points a tiled asset's surface measures are pooled over grid cells of this many
+POOLED_POINTS = 250_000
 
 
-def _marked_copies(points, centre, phi, specs, banks, length, params, plan, recorded):
-    """The recipients' copies, synthesised cluster by cluster with one basis in memory at a time."""
-    chips = [fingerprint.signs(b, length)[0] for b in banks]
-    marked = [points.copy() for _ in banks]
+def _marked_copies(points, centre, phi, specs, chips, params, plan, recorded, near):
+    """Each recipient's marked copy (n, 3), in order, the bases read once and one at a time.
+
+    When the copies fit in :data:`MARKED_BYTES` they are synthesised together
+    in memory; otherwise each recipient's displacements go to a scratch file
+    cluster by cluster, and the copies are built from them one at a time.
+    Clusters are disjoint, so both add each point's displacement once: the
+    same bytes.
+    """
     count = 3 * params.total_bits * params.chip_rate
-    for spec, _, basis, normals in verified_clusters(points, centre, specs, params, plan.store, plan.store_key,
-                                                    recorded, source="this run's cluster tasks"):
-        local = points[spec.members]
-        for copy, x in zip(marked, chips):
-            copy[spec.members] += cluster_fingerprint(basis, normals, x[spec.index * count:(spec.index + 1) * count],
-                                                      phi, local, params)
-    return marked
+    clusters = verified_clusters(points, centre, specs, params, plan.store, plan.store_key, recorded,
+                                 source="this run's cluster tasks")
+
+    def moved(spec, basis, normals, x):
+        return cluster_fingerprint(basis, normals, x[spec.index * count:(spec.index + 1) * count], phi,
+                                   points[spec.members], params)
+
+    if len(chips) * points.nbytes <= MARKED_BYTES:
+        marked = [points.copy() for _ in chips]
+        for spec, _, basis, normals in clusters:
+            for copy, x in zip(marked, chips):
+                copy[spec.members] += moved(spec, basis, normals, x)
+        while marked:
+            yield marked.pop(0)
+        return
+    with Scratch(near) as scratch:
+        for spec, _, basis, normals in clusters:
+            for j, x in enumerate(chips):
+                scratch.append(j, moved(spec, basis, normals, x))
+        order = np.concatenate([s.members for s in specs])
+        for j in range(len(chips)):
+            copy = points.copy()
+            copy[order] += scratch.read(j)
+            yield copy
 
 
-def _distortion_measure(points):
-    """The copy's distortion against its original: exact, or pooled over cells on large scenes."""
-    if len(points) <= POOLED_POINTS:
+def _distortion_measure(points, params):
+    """The copy's distortion against its original: exact, or pooled over cells for a large tiled asset."""
+    if params.tile_points is None or len(points) <= POOLED_POINTS:
         side = surface_measures.original_side(points)
         return lambda written: distortion(points, written, side=side)
     cells = clustering.grid_cells(points, POOLED_POINTS)
     return lambda written: distortion(points, written, cells=cells)
 
 
-def _publish(cloud, points, marked, out, measure):
-    """Write one copy under a pending name, check what the file holds, then rename it into place."""
+def _publish(cloud, points, marked, out):
+    """Write one copy under a pending name, check what the file holds, then rename it into place.
+
+    Returns
+    -------
+    row : dict (output path, sha256, realized ratio)
+    written : (n, 3) float, the coordinates the file holds
+    """
     pending = out.with_name(f".{out.stem}.pending{out.suffix}")
     write_points(cloud, marked, pending)      # published only once it is checked
     try:
-        written = read_points(pending).points
+        written = read_coordinates(pending)
         ratio = _realized_ratio(points, marked, written, out)
     except Exception:
         pending.unlink(missing_ok=True)
         raise
     os.replace(pending, out)
-    return {"output_path": str(out), "output_sha256": sha256_file(out), "realized_ratio": ratio,
-            **measure(written)}
+    return {"output_path": str(out), "output_sha256": sha256_file(out), "realized_ratio": ratio}, written
 
 
 def _realized_ratio(original, intended, written, out):

@@ -74,3 +74,29 @@ def test_las_keeps_scale_offset_and_records(tmp_path, suffix):
     assert np.allclose(out.header.scales, header.scales) and np.allclose(out.header.offsets, header.offsets)
     assert np.array_equal(out.intensity, las.intensity)
     assert np.allclose(out.x, np.asarray(las.x) + 0.01, atol=0.0011)
+
+
+@pytest.mark.parametrize("suffix", [".las", ".laz"])
+def test_las_written_and_read_back_in_chunks_is_the_same_file(tmp_path, suffix, monkeypatch):
+    import laspy
+
+    from pipeline.io import pointcloud
+
+    rng = np.random.default_rng(3)
+    header = laspy.LasHeader(point_format=1, version="1.2")
+    header.scales = np.array([0.001, 0.001, 0.001])
+    header.offsets = np.array([5.0e5, 4.0e6, 0.0])
+    las = laspy.LasData(header)
+    las.x, las.y = 5.0e5 + rng.uniform(0, 50, 1000), 4.0e6 + rng.uniform(0, 50, 1000)
+    las.z = rng.uniform(0, 5, 1000)
+    las.gps_time = np.arange(1000) * 0.5
+    las.write(str(tmp_path / f"in{suffix}"))
+    cloud = read_points(tmp_path / f"in{suffix}")
+    moved = cloud.points + rng.normal(0, 0.01, cloud.points.shape)
+    write_points(cloud, moved, tmp_path / f"whole{suffix}")
+    monkeypatch.setattr(pointcloud, "LAS_CHUNK", 97)          # 11 chunks, the last one short
+    write_points(cloud, moved, tmp_path / f"chunks{suffix}")
+    assert (tmp_path / f"chunks{suffix}").read_bytes() == (tmp_path / f"whole{suffix}").read_bytes()
+    back = pointcloud.read_coordinates(tmp_path / f"chunks{suffix}")
+    assert np.array_equal(back, read_points(tmp_path / f"whole{suffix}").points)
+    assert np.abs(back - moved).max() <= 0.0005 + 1e-9            # the file's 1 mm scale, rounded

@@ -65,11 +65,22 @@ def test_grid_cells_partition_a_tile_into_squares_of_about_the_asked_size():
     assert all(np.all(np.diff(c) > 0) for c in cells)              # ascending within a cell
     assert 20 <= len(cells) <= 30                                  # 50,000 / 2,000 = 25
     side = np.sqrt(400 * 100 * 2000 / 50_000)
-    for c in cells:                                                # squares over x and y, not z
+    for c in cells:                                                # squares over x and y, no slivers
         extent = np.ptp(pts[c][:, :2], axis=0)
-        assert (extent <= side * (1 + 1e-9)).all()
+        assert (extent <= 1.5 * side).all() and (extent >= 0.5 * side).all()
     assert max(len(c) for c in cells) < 2 * 2000
     assert [c.tolist() for c in grid_cells(pts, 2000)] == [c.tolist() for c in cells]
+
+
+def test_dense_parts_of_a_scene_are_split_until_no_cell_exceeds_twice_the_size():
+    rng = np.random.default_rng(4)
+    sparse = np.column_stack([rng.uniform(0, 100, 10_000), rng.uniform(0, 100, 10_000), np.zeros(10_000)])
+    dense = np.column_stack([rng.normal(50, 1, 40_000), rng.normal(50, 1, 40_000), rng.normal(0, 1, 40_000)])
+    pts = np.vstack([sparse, dense])                               # a scanner's surroundings: dense near it
+    cells = grid_cells(pts, 2000)
+    assert np.array_equal(np.sort(np.concatenate(cells)), np.arange(len(pts)))
+    assert max(len(c) for c in cells) <= 4000
+    assert all(np.all(np.diff(c) > 0) for c in cells)
 
 
 def test_a_set_no_larger_than_a_cell_is_one_cell():

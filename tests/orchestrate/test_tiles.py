@@ -15,10 +15,12 @@ from pipeline.io.basis_store import BasisStore
 from pipeline.io.ledger import Ledger
 from pipeline.io.pointcloud import read_points, write_array
 from pipeline.kernels import clustering
+from pipeline.kernels import digest
 from pipeline.orchestrate import tasks
 from pipeline.orchestrate.progress import Progress
+from pipeline.orchestrate.reference import load_reference
 from pipeline.orchestrate.run import plan_job, run_job
-from pipeline.watermark import WatermarkParams
+from pipeline.watermark import ReferenceMismatch, WatermarkParams
 from tests.conftest import ROOT
 from tests.orchestrate.test_run import SECRET, _outputs, make_catalogue, write_config
 
@@ -71,31 +73,82 @@ def test_a_tiled_run_covers_the_tile_cell_by_cell_and_a_tenth_names_the_recipien
     assert verdict["verdict"] == "match" and [a["recipient"] for a in verdict["accused"]] == ["bob"]
 
 
-def test_cluster_tasks_of_a_tiled_asset_need_only_the_store(tmp_path, tile):
+def _planned(tmp_path, tile):
     params = WatermarkParams(**TILED)
     store = BasisStore(tmp_path / "bases")
     copy = tmp_path / "asset.laz"
     copy.write_bytes(tile.read_bytes())
-    plan = tasks.plan_asset("asset", copy, "", params, store.folder, "k")
+    return params, store, copy, tasks.plan_asset("asset", copy, "", params, store.folder, "k")
+
+
+def test_cluster_tasks_of_a_tiled_asset_need_only_the_store(tmp_path, tile):
+    params, store, copy, plan = _planned(tmp_path, tile)
     copy.unlink()                                 # the cluster tasks must not read the file
     for i in range(len(plan.clusters)):
         assert tasks.cluster_task(plan, i, params)["basis"]
     assert all(store.has("k", f"cluster-{i}") for i in range(len(plan.clusters)))
 
 
-def test_copies_synthesised_one_recipient_at_a_time_are_the_same_bytes(tmp_path, monkeypatch):
+def test_a_damaged_stored_cluster_is_read_from_the_asset_and_stored_again(tmp_path, tile):
+    params, store, copy, plan = _planned(tmp_path, tile)
+    good = tasks.cluster_task(plan, 0, params)
+    (store.folder / "k" / "cluster-0.npz").unlink()
+    (store.folder / "k" / "points-0.npz").write_bytes(b"damaged")
+    again = tasks.cluster_task(plan, 0, params)
+    assert again["basis"] == good["basis"]
+    assert store.load_array("k", "points-0").shape == (len(plan.clusters[0].members), 3)
+
+
+def test_detection_models_the_normals_a_tiled_embedding_moved_along(tmp_path, tile):
+    params, store, copy, plan = _planned(tmp_path, tile)
+    ref = load_reference(read_points(copy).points, params, store, "k", detection=True)
+    for spec, normals in zip(ref.specs, ref.normals):
+        assert np.array_equal(ref.model_normals[spec.members], normals)
+
+
+def test_an_issue_task_refuses_a_stored_basis_its_cluster_task_did_not_record(tmp_path, tile):
+    params, store, copy, plan = _planned(tmp_path, tile)
+    parts = [tasks.cluster_task(plan, i, params) for i in range(len(plan.clusters))]
+    radius, basis, normals = store.load_cluster("k", 3)
+    store.save_cluster("k", 3, radius, basis[:, ::-1], normals)       # another basis under cluster 3
+    assert digest.basis_digest(basis[:, ::-1]) != parts[3]["basis"]
+    with pytest.raises(ReferenceMismatch, match="cluster 3 spectral basis"):
+        tasks.issue_task(plan, parts, b"m" * 32, [("alice", tmp_path / "out" / "a.laz")], params,
+                         {"generation": 1})
+    assert not (tmp_path / "out" / "a.laz").exists()
+
+
+def test_a_large_tiled_copy_has_its_surface_measures_pooled_over_cells(monkeypatch, tile):
+    points = read_points(tile).points
+    rng = np.random.default_rng(2)
+    marked = points + rng.normal(0, 0.01, points.shape)
+    exact = tasks._distortion_measure(points, WatermarkParams(**TILED))(marked)
+    monkeypatch.setattr(tasks, "POOLED_POINTS", 10_000)
+    pooled = tasks._distortion_measure(points, WatermarkParams(**TILED))(marked)
+    assert pooled["rmse_rel_diag"] == exact["rmse_rel_diag"]
+    for name in ("mrms_rel_diag", "surface_rmse_rel_diag", "normal_deviation_deg"):
+        assert pooled[name] == pytest.approx(exact[name], rel=0.05), name
+    assert pooled["hausdorff_rel_diag"] >= exact["hausdorff_rel_diag"]
+
+
+def test_copies_built_from_scratch_files_are_the_same_bytes(tmp_path, monkeypatch):
     src = make_catalogue(tmp_path / "assets", n_assets=2)
     cfg = config.load_config(write_config(tmp_path, src, out="together"))
     assert run_job(plan_job(cfg, SECRET.encode()), cfg, serial=True, progress=Progress())["ok"] == 2
-    monkeypatch.setattr(tasks, "MARKED_BYTES", 1)        # one marked copy in memory at a time
+    monkeypatch.setattr(tasks, "MARKED_BYTES", 1)        # displacements through scratch files, one copy at a time
     cfg = config.load_config(write_config(tmp_path, src, out="apart"))
     assert run_job(plan_job(cfg, SECRET.encode()), cfg, serial=True, progress=Progress())["ok"] == 2
     a, b = _outputs(tmp_path / "together" / "marked"), _outputs(tmp_path / "apart" / "marked")
-    assert len(a) == 4 and a == b
+    assert len(a) == 4 and a == b                        # and no scratch folder is left behind
 
 
-def test_tile_points_with_given_seeds_is_refused(tmp_path):
+@pytest.mark.parametrize("settings, problem", [
+    ({"tile_points": 5000, "cover": True, "seeds": [1, 2]}, "seeds"),
+    ({"tile_points": 5000, "cover": False}, "cover"),
+    ({"tile_points": 2000, "cover": True, "cluster_size": 4000}, "cluster_size"),
+])
+def test_tile_points_that_cannot_apply_are_refused(tmp_path, settings, problem):
     path = tmp_path / "c.yaml"
-    path.write_text(yaml.safe_dump({"watermark": {"tile_points": 5000, "seeds": [1, 2]}}))
-    with pytest.raises(config.ConfigError, match="tile_points"):
+    path.write_text(yaml.safe_dump({"watermark": settings}))
+    with pytest.raises(config.ConfigError, match=f"tile_points: .*{problem}"):
         config.load_config(path)
