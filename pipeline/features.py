@@ -279,6 +279,70 @@ def overlap_of(transform, suspect, original, spacing):
     return harmonic(f, c), r
 
 
+SEARCH_RESIDUAL = 1.0   # spacings: a part registered with more residual than this is searched again
+
+
+def needs_search(transform, suspect, original, spacing):
+    """Whether a registration leaves the suspect a poorly fitting part, so :func:`register_search` may do better.
+
+    A crop laid where it belongs fits within the noise; one laid on the
+    wrong place of a smooth shape fits everywhere, loosely.
+    """
+    ref = _original(original, spacing, 4000)
+    fitness, coverage, residual = registration.overlap(registration.apply(transform, suspect), ref.tree,
+                                                       ref.sample, 3.0 * spacing)
+    return min(fitness, coverage) < 0.8 and residual > SEARCH_RESIDUAL * spacing
+
+
+SEARCH_POSES = 48      # coarse poses from the rotation search, each refined briefly on a small probe
+SEARCH_REFINED = 6     # of those, refined on the ICP subsample (the best on every point)
+
+
+def register_search(suspect, original, *, spacing, icp_points=6000, rng=0):
+    """Part-to-whole registration without features: :func:`registration.rotation_search` then ICP.
+
+    The scale comes from the ratio of point spacings (a crop keeps its
+    spacing).  Each of :data:`SEARCH_POSES` coarse poses is refined by a
+    short trimmed ICP on about 1,500 points; the :data:`SEARCH_REFINED`
+    best (ordered as :func:`best_overlap` orders) again on the ICP
+    subsample, and the best of those on every point.
+
+    Parameters
+    ----------
+    suspect : (n, 3) float
+    original : (m, 3) float
+    spacing : float
+        Median nearest-neighbour distance of the original.
+    icp_points : int
+    rng : int
+
+    Returns
+    -------
+    registration.Similarity
+    """
+    ref = _original(original, spacing, 4000)
+    dense = dense_part(suspect)
+    sub = suspect
+    if len(suspect) > icp_points:
+        gen = np.random.default_rng(rng)
+        sub = suspect[np.sort(gen.choice(len(suspect), icp_points, replace=False))]
+    probe = sub[:: max(1, len(sub) // 1500)]
+
+    def refined(points, start, iterations, sample):
+        fine = registration.refine_part(points, ref.tree, original, start, spacing=spacing, iterations=iterations)
+        f, c, r = registration.overlap(registration.apply(fine, points), ref.tree, sample, 3.0 * spacing)
+        return (harmonic(f, c), r), fine
+
+    starts = registration.rotation_search(dense, original, spacing / median_spacing(dense), top=SEARCH_POSES)
+    quick = [refined(probe, start, 30, ref.sample[:1000]) for _, start in starts]
+    top = max(h for (h, _), _ in quick)
+    quick.sort(key=lambda q: (q[0][0] < top - OVERLAP_TIE, q[0][1]))      # best_overlap's order
+    fits = [refined(sub, q[1], 60, ref.sample) for q in quick[:SEARCH_REFINED]]
+    best = fits[best_overlap([rank for rank, _ in fits])][1]
+    return registration.refine_part(suspect, ref.tree, original, best, spacing=spacing, widths=(3.0,),
+                                    iterations=FINAL_ITERATIONS)
+
+
 SCALES = (1.0, 2**0.5, 2**-0.5, 2.0, 0.5, 2**1.5, 2**-1.5)
 
 

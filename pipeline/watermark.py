@@ -748,6 +748,12 @@ def _register(suspect, reference, spacing, method, tree):
     else:
         tried = [robust, features.register_global(suspect, reference, spacing=spacing).transform]
     ranked = [features.overlap_of(t, suspect, reference, spacing) for t in tried]
+    best = tried[features.best_overlap(ranked)]
+    if not features.needs_search(best, suspect, reference, spacing):
+        return best
+    # a part laid loosely on a smooth shape, where features mislead: search every rotation
+    tried.append(features.register_search(suspect, reference, spacing=spacing))
+    ranked.append(features.overlap_of(tried[-1], suspect, reference, spacing))
     return tried[features.best_overlap(ranked)]
 
 

@@ -205,3 +205,27 @@ def test_shape_views_survive_saving_the_index(blob_family, tmp_path):
     loaded = features.FeatureIndex.load(tmp_path / "i.npz")
     assert np.array_equal(loaded.shapes, index.shapes) and np.array_equal(loaded.shape_owner, index.shape_owner)
     assert len(index.shapes) == len(index.keys) * (1 + 48 * 3)
+
+
+@pytest.mark.parametrize("kind, chain", [("blob", "crop:0.3+random_similarity"),
+                                         ("shell", "crop:0.5+random_similarity+noise:0.3%")])
+def test_detection_registers_a_crop_of_a_smooth_shape(kind, chain):
+    # FPFH features are all alike on a smooth surface; the rotation search does not need them
+    from scipy.spatial import cKDTree
+
+    from pipeline.watermark import _register
+
+    shape = demo.procedural_shape(kind, 6000, seed=8) * 20
+    spacing = float(np.median(nearest_spacing(shape)))
+    steps = [surface.parse_attack(p) for p in chain.split("+")]
+    rng = np.random.default_rng(5)
+    part = attacks.crop(shape, float(steps[0][1]), rng)
+    rot, scale = attacks.random_rotation(rng), 3.0
+    placed = attacks.similarity(part, rot, scale, [4.0, -1.0, 2.0])
+    suspect = attacks.apply_chain(placed, steps[2:], rng)
+    found = _register(suspect, shape, spacing, "robust", cKDTree(shape))
+    assert _aligned_error(found, placed, part) < 0.1 * spacing      # the pose, not the noise
+    assert not features.needs_search(found, suspect, shape, spacing)
+    # a pose a few spacings off along the surface fits loosely: searched again
+    off = registration.Similarity(found.rotation, found.scale, found.translation + 4.0 * spacing)
+    assert features.needs_search(off, suspect, shape, spacing)

@@ -10,6 +10,11 @@ of the principal frame are each refined by trimmed ICP with scale
 (Umeyama's closed form on nearest neighbours, pairs beyond a robust cut
 dropped, so partial overlap does not pull), and the best fit wins.
 
+``rotation_search`` needs no features: at a known scale it tries a fixed
+set of rotations and finds each one's best translation by an FFT
+correlation of voxel grids (as protein docking does).  It registers parts of
+smooth shapes, where local descriptors are all alike.
+
 ``connected_parts`` splits a scene into the objects it holds (points closer
 than a few spacings are linked), so an asset placed among other objects can
 be registered whole-to-whole by ``register_robust``, the way a whole copy is.
@@ -28,7 +33,7 @@ from scipy.spatial import cKDTree
 __all__ = [
     "Similarity", "apply", "umeyama", "principal_frame", "register_covariance",
     "icp_similarity", "register_robust", "umeyama_batch", "ransac_similarity", "overlap",
-    "refine_part", "connected_parts", "separate_objects", "shape_signature",
+    "refine_part", "rotation_search", "connected_parts", "separate_objects", "shape_signature",
 ]
 
 
@@ -509,6 +514,63 @@ def refine_part(suspect, tree, original, start, *, spacing, iterations=30, width
     fitness = float(inside.mean())
     residual = float(np.sqrt((dist[inside] ** 2).mean())) if inside.any() else float("inf")
     return Similarity(current.rotation, current.scale, current.translation, fitness, residual)
+
+
+def rotation_search(suspect, original, scale, *, rotations=1000, grid=64, top=12, max_points=3000):
+    """Coarse poses of a suspect at a known scale, by exhaustive rotation and FFT translation search.
+
+    The original becomes a grid of soft occupancy (a Gaussian of each voxel
+    centre's distance to the nearest original point, sigma one voxel).  For
+    each of ``rotations`` fixed rotations (the same on every machine), the
+    scaled, rotated suspect becomes a 0/1 grid and its correlation with the
+    original over every translation is one FFT product; the best translation
+    scores the mean occupancy under the suspect's voxels.  The ``top``
+    best-scoring rotations are returned as starting poses for ICP.
+
+    Parameters
+    ----------
+    suspect : (n, 3) float
+    original : (m, 3) float
+    scale : float
+        Suspect-to-original scale (from the ratio of point spacings).
+    rotations : int
+    grid : int
+        Voxels per side; the grid spans the original padded by the suspect's radius.
+    top : int
+    max_points : int
+        Suspect subsample voxelized per rotation.
+
+    Returns
+    -------
+    list of (float, Similarity)
+        Score (mean occupancy, 0..1) and pose, best first.
+    """
+    from scipy import fft
+    from scipy.spatial.transform import Rotation
+
+    moved = np.asarray(suspect, dtype=np.float64) * scale
+    centre = moved.mean(axis=0)
+    moved = moved - centre
+    moved = moved[:: max(1, len(moved) // max_points)]
+    radius = float(np.linalg.norm(moved, axis=1).max())
+    lo = original.min(axis=0) - radius
+    voxel = float((original.max(axis=0) + radius - lo).max()) / grid
+    axes = np.arange(grid)
+    cells = np.stack(np.meshgrid(axes, axes, axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    dist, _ = cKDTree(original).query(lo + (cells + 0.5) * voxel, distance_upper_bound=4.0 * voxel)
+    occupancy = np.exp(-0.5 * (np.minimum(dist, 4.0 * voxel) / voxel) ** 2).reshape(grid, grid, grid)
+    spectrum = fft.rfftn(occupancy, workers=1)
+    found = []
+    for rotation in Rotation.random(rotations, random_state=0).as_matrix():
+        index = np.floor(moved @ rotation.T / voxel).astype(np.int64) % grid
+        mask = np.zeros((grid, grid, grid))
+        mask[index[:, 0], index[:, 1], index[:, 2]] = 1.0
+        corr = fft.irfftn(spectrum * np.conj(fft.rfftn(mask, workers=1)), s=mask.shape, workers=1)
+        shift = np.unravel_index(int(np.argmax(corr)), corr.shape)
+        # x -> R (scale x - centre) + lo + shift * voxel
+        found.append((float(corr[shift] / mask.sum()), rotation, lo + np.asarray(shift) * voxel - rotation @ centre))
+    found.sort(key=lambda f: -f[0])
+    return [(s, Similarity(r, float(scale), t)) for s, r, t in found[:top]]
 
 
 def connected_parts(points, radius, *, min_points=1):

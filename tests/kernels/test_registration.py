@@ -95,3 +95,32 @@ def test_separate_objects_are_the_parts_of_a_scene_and_none_of_one_object():
     assert separate_objects(near, 1.0) == []
     assert separate_objects(near[rng.permutation(len(near))], 0.25, min_points=100) == []
     assert [len(p) for p in separate_objects(near, 0.25)] == [40]
+
+
+
+def test_rotation_search_finds_a_crop_of_a_smooth_shape_at_a_known_scale():
+    from scipy.spatial import cKDTree
+
+    from pipeline.demo import procedural_shape
+    from pipeline.kernels.registration import refine_part, rotation_search
+    from pipeline.kernels.resampling import nearest_spacing
+
+    blob = procedural_shape("blob", 4000, seed=1) * 20     # smooth: no feature tells its parts apart
+    spacing = float(np.median(nearest_spacing(blob)))
+    rng = np.random.default_rng(3)
+    part = attacks.crop(blob, 0.3, rng)
+    suspect = attacks.similarity(part, attacks.random_rotation(rng), 4.0, [5.0, -2.0, 1.0])
+    found = rotation_search(suspect, blob, 0.25, top=48)
+    assert len(found) == 48 and [s for s, _ in found] == sorted((s for s, _ in found), reverse=True)
+    assert all(0.0 < s <= 1.0 for s, _ in found)
+    assert all(t.scale == 0.25 for _, t in found)
+    # the same poses on every call (the rotations are fixed)
+    again = rotation_search(suspect, blob, 0.25, top=48)
+    assert all(np.array_equal(a.rotation, b.rotation) and np.array_equal(a.translation, b.translation)
+               for (_, a), (_, b) in zip(found, again))
+    tree = cKDTree(blob)
+    errors = [float(np.median(np.linalg.norm(apply(refine_part(suspect, tree, blob, start, spacing=spacing,
+                                                               iterations=60), suspect) - part, axis=1)))
+              for _, start in found]
+    assert min(errors) < 0.01 * spacing
+    assert np.median(errors) > 2.0 * spacing      # most poses are wrong: the search, not ICP, found it
