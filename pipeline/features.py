@@ -318,10 +318,13 @@ def register_search(suspect, original, *, spacing, icp_points=6000, rng=0):
 
     Returns
     -------
-    registration.Similarity
+    registration.Similarity, or None when the suspect's spacing gives no scale (coincident points)
     """
     ref = _original(original, spacing, 4000)
     dense = dense_part(suspect)
+    spread = median_spacing(dense)
+    if not (np.isfinite(spread) and spread > 0.0):
+        return None
     sub = suspect
     if len(suspect) > icp_points:
         gen = np.random.default_rng(rng)
@@ -333,7 +336,7 @@ def register_search(suspect, original, *, spacing, icp_points=6000, rng=0):
         f, c, r = registration.overlap(registration.apply(fine, points), ref.tree, sample, 3.0 * spacing)
         return (harmonic(f, c), r), fine
 
-    starts = registration.rotation_search(dense, original, spacing / median_spacing(dense), top=SEARCH_POSES)
+    starts = registration.rotation_search(dense, original, spacing / spread, top=SEARCH_POSES)
     quick = [refined(probe, start, 30, ref.sample[:1000]) for _, start in starts]
     top = max(h for (h, _), _ in quick)
     quick.sort(key=lambda q: (q[0][0] < top - OVERLAP_TIE, q[0][1]))      # best_overlap's order

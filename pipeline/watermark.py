@@ -752,8 +752,11 @@ def _register(suspect, reference, spacing, method, tree):
     if not features.needs_search(best, suspect, reference, spacing):
         return best
     # a part laid loosely on a smooth shape, where features mislead: search every rotation
-    tried.append(features.register_search(suspect, reference, spacing=spacing))
-    ranked.append(features.overlap_of(tried[-1], suspect, reference, spacing))
+    searched = features.register_search(suspect, reference, spacing=spacing)
+    if searched is None:
+        return best
+    tried.append(searched)
+    ranked.append(features.overlap_of(searched, suspect, reference, spacing))
     return tried[features.best_overlap(ranked)]
 
 

@@ -229,3 +229,10 @@ def test_detection_registers_a_crop_of_a_smooth_shape(kind, chain):
     # a pose a few spacings off along the surface fits loosely: searched again
     off = registration.Similarity(found.rotation, found.scale, found.translation + 4.0 * spacing)
     assert features.needs_search(off, suspect, shape, spacing)
+
+
+def test_the_rotation_search_declines_a_suspect_without_spacing():
+    shape = demo.procedural_shape("blob", 2000, seed=1) * 20
+    spacing = float(np.median(nearest_spacing(shape)))
+    coincident = np.repeat(shape[:1], 100, axis=0)       # one point 100 times: no spacing, no scale
+    assert features.register_search(coincident, shape, spacing=spacing) is None
