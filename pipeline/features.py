@@ -279,6 +279,13 @@ def overlap_of(transform, suspect, original, spacing):
     return harmonic(f, c), r
 
 
+def _icp_subsample(points, n, gen):
+    """At most ``n`` of ``points``, drawn by ``gen`` and kept in their order (all of them when fewer)."""
+    if len(points) <= n:
+        return points
+    return points[np.sort(gen.choice(len(points), n, replace=False))]
+
+
 SEARCH_RESIDUAL = 1.0   # spacings: a part registered with more residual than this is searched again
 
 
@@ -325,10 +332,7 @@ def register_search(suspect, original, *, spacing, icp_points=6000, rng=0):
     spread = median_spacing(dense)
     if not (np.isfinite(spread) and spread > 0.0):
         return None
-    sub = suspect
-    if len(suspect) > icp_points:
-        gen = np.random.default_rng(rng)
-        sub = suspect[np.sort(gen.choice(len(suspect), icp_points, replace=False))]
+    sub = _icp_subsample(suspect, icp_points, np.random.default_rng(rng))
     probe = sub[:: max(1, len(sub) // 1500)]
 
     def refined(points, start, iterations, sample):
@@ -392,9 +396,7 @@ def register_global(suspect, original, *, spacing, target=4000, scales=SCALES,
     gen = np.random.default_rng(rng)
     dense = dense_part(suspect)
     ratio = median_spacing(dense) / spacing
-    sub = suspect
-    if len(suspect) > icp_points:
-        sub = suspect[np.sort(gen.choice(len(suspect), icp_points, replace=False))]
+    sub = _icp_subsample(suspect, icp_points, gen)
     probe = sub[:: max(1, len(sub) // 1500)]
     best = None
     tried = []
