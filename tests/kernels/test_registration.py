@@ -97,7 +97,6 @@ def test_separate_objects_are_the_parts_of_a_scene_and_none_of_one_object():
     assert [len(p) for p in separate_objects(near, 0.25)] == [40]
 
 
-
 def test_rotation_search_finds_a_crop_of_a_smooth_shape_at_a_known_scale():
     from scipy.spatial import cKDTree
 
