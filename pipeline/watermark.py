@@ -743,7 +743,7 @@ def _register(suspect, reference, spacing, method, tree):
                                         widths=POLISH_WIDTHS, iterations=POLISH_ITERATIONS)
     from . import features   # open3d: imported only when needed
 
-    # (its ICP trims by a quantile, which outliers widen: polish it with a fixed cut first)
+    # the same quantile bias: one fixed cut before the other registrations compete
     robust = registration.refine_part(suspect, tree, reference, robust, spacing=spacing,
                                       widths=(3.0,), iterations=features.FINAL_ITERATIONS)
     placed = _register_parts(suspect, reference, spacing, tree)
