@@ -32,6 +32,14 @@ def resample(points, n_points, rng=None, *, depth=8):
     No input point survives: samples are drawn uniformly on the reconstructed
     triangles, away from the (trimmed) low-density parts of the surface.
 
+    open3d's reconstruction is multithreaded: its vertices and triangles
+    come in another order at each call, and a few tenths of a per cent of
+    its cells take the other diagonal, so its own sampler draws other points
+    for the same seed.  :func:`~pipeline.kernels.attacks.sample_triangles`
+    draws them instead, from
+    each triangle's geometry and the seed: the same seed gives the same
+    points, but for the few triangles that differ.
+
     Parameters
     ----------
     points : (n, 3) float
@@ -51,9 +59,8 @@ def resample(points, n_points, rng=None, *, depth=8):
     mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(cloud, depth=depth)
     density = np.asarray(density)
     mesh.remove_vertices_by_mask(density < np.quantile(density, 0.05))
-    sampled = mesh.sample_points_uniformly(number_of_points=int(n_points))
-    out = np.asarray(sampled.points) * scale + centre
-    return out[rng.permutation(len(out))]
+    out = attacks.sample_triangles(np.asarray(mesh.vertices), np.asarray(mesh.triangles), int(n_points), rng)
+    return out * scale + centre
 
 
 def simplify(points, n_vertices, rng=None, *, faces):

@@ -13,7 +13,7 @@ from scipy.spatial import cKDTree
 __all__ = [
     "rotation_matrix", "similarity", "paper_similarity", "random_similarity", "noise_uniform",
     "noise_gaussian", "removal", "crop_plane", "crop", "quantize", "smooth", "shuffle", "apply_chain", "ATTACKS",
-    "outliers", "scene", "clutter", "random_rotation",
+    "outliers", "scene", "clutter", "random_rotation", "sample_triangles",
 ]
 
 
@@ -244,6 +244,75 @@ def clutter(points, factor, rng=None, *, n_objects=4):
 
 
 # name -> (function, takes a strength)
+def sample_triangles(vertices, triangles, n_points, rng, *, grid=1e-4):
+    """Area-uniform samples on a triangle soup, whatever its order.
+
+    Each triangle draws its samples from a counter-based hash of its corners
+    (rounded to ``grid``) and a seed taken from ``rng``: about
+    ``1.25 n_points`` candidates in all, each with a random priority, of
+    which the ``n_points`` of lowest priority are kept.  Reordering the
+    triangles, or their corners, changes nothing; a triangle that differs
+    changes only its own candidates.
+
+    Parameters
+    ----------
+    vertices : (v, 3) float
+    triangles : (t, 3) int
+    n_points : int
+    rng : numpy.random.Generator
+    grid : float
+        Rounding of the corners (in the units of ``vertices``) before they
+        are hashed, well above the noise of the reconstruction's float32
+        vertices and well below its cells.
+
+    Returns
+    -------
+    (n_points, 3) float, in random order
+    """
+    seed = np.uint64(rng.integers(0, 2**63))
+    key = np.round(vertices[triangles] / grid).astype(np.int64)     # (t, 3, 3)
+    flat = key.reshape(-1, 3)
+    order = np.lexsort(flat.T[::-1]).reshape(-1)
+    rank = np.empty(len(flat), dtype=np.int64)
+    rank[order] = np.arange(len(flat))
+    corner_order = np.argsort(rank.reshape(-1, 3), axis=1)        # corners in lexicographic order
+    corners = np.take_along_axis(vertices[triangles], corner_order[:, :, None], axis=1)
+    key = np.take_along_axis(key, corner_order[:, :, None], axis=1).reshape(len(key), 9)
+    tri_hash = np.full(len(key), seed, dtype=np.uint64)
+    for column in key.view(np.uint64).T:
+        tri_hash = _mix(tri_hash ^ column)
+    area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    scale = 1.25 * n_points / area.sum()
+    while True:
+        count = np.floor(scale * area + _uniform(tri_hash, 0)).astype(np.int64)
+        if count.sum() >= n_points:
+            break
+        scale *= 1.5
+    owner = np.repeat(np.arange(len(area)), count)
+    counter = np.arange(len(owner)) - np.repeat(np.cumsum(count) - count, count) + 1
+    point_hash = _mix(tri_hash[owner] ^ _mix(counter.astype(np.uint64)))
+    keep = np.argsort(_uniform(point_hash, 1), kind="stable")[:n_points]
+    owner, point_hash = owner[keep], point_hash[keep]
+    u, v = _uniform(point_hash, 2), _uniform(point_hash, 3)
+    flip = u + v > 1.0                                              # fold the square onto the triangle
+    u[flip], v[flip] = 1.0 - u[flip], 1.0 - v[flip]
+    a, b, c = corners[owner, 0], corners[owner, 1], corners[owner, 2]
+    return a + u[:, None] * (b - a) + v[:, None] * (c - a)
+
+
+def _mix(x):
+    """SplitMix64 finaliser, elementwise on uint64."""
+    x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return x ^ (x >> np.uint64(31))
+
+
+def _uniform(h, stream):
+    """Uniform in [0, 1) from hashes ``h``, one independent stream per integer."""
+    x = _mix(h + np.uint64(0x9E3779B97F4A7C15 * (stream + 1) % 2**64))
+    return (x >> np.uint64(11)).astype(np.float64) / float(2**53)
+
+
 ATTACKS = {
     "similarity": (paper_similarity, False),
     "random_similarity": (random_similarity, False),

@@ -60,6 +60,64 @@ def test_resampling_shares_no_point_with_its_input():
     assert np.median(d) < 0.05 * PHI          # but lies on the same surface
 
 
+def test_resampling_draws_the_same_points_from_the_same_seed():
+    # open3d's reconstruction returns its triangles in another order at each
+    # call; its own sampler then drew other points (0.6 % to 5.3 % within 1e-5 here)
+    a, b = surface.resample(PTS, 2500, rng=5), surface.resample(PTS, 2500, rng=5)
+    d, _ = cKDTree(a).query(b)
+    assert np.mean(d < 1e-5 * PHI) > 0.97
+    d, _ = cKDTree(a).query(surface.resample(PTS, 2500, rng=6))
+    assert np.mean(d < 1e-5 * PHI) < 0.01
+
+
+def _soup(rng):
+    v = rng.random((40, 3))
+    return v, np.array([rng.choice(40, 3, replace=False) for _ in range(60)])
+
+
+def test_triangle_samples_ignore_the_order_of_triangles_and_corners():
+    rng = np.random.default_rng(3)
+    v, t = _soup(rng)
+    a = attacks.sample_triangles(v, t, 3000, np.random.default_rng(8))
+    shuffled = np.array([np.roll(tri, k) for tri, k in zip(t, rng.integers(0, 3, len(t)))])[rng.permutation(len(t))]
+    perm = rng.permutation(len(v))                     # vertices renumbered too
+    inverse = np.argsort(perm)
+    b = attacks.sample_triangles(v[perm], inverse[shuffled], 3000, np.random.default_rng(8))
+    assert np.array_equal(a, b)
+    # one triangle more changes only what that triangle draws
+    c = attacks.sample_triangles(v, np.vstack([t, [[0, 1, 2]]]), 3000, np.random.default_rng(8))
+    d, _ = cKDTree(a).query(c)
+    assert 0.9 < np.mean(d < 1e-12) < 1.0
+
+
+def test_triangle_samples_are_uniform_over_the_area():
+    rng = np.random.default_rng(4)
+    v, t = _soup(rng)
+    out = attacks.sample_triangles(v, t, 60_000, np.random.default_rng(9))
+    assert out.shape == (60_000, 3)
+    corners = v[t]
+    area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    # barycentric coordinates of each sample in each triangle: inside exactly one
+    e1, e2 = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
+    gram = np.stack([np.stack([(e1 * e1).sum(1), (e1 * e2).sum(1)], 1),
+                     np.stack([(e1 * e2).sum(1), (e2 * e2).sum(1)], 1)], 1)
+    rel = out[None, :, :] - corners[:, None, 0]
+    rhs = np.stack([(rel * e1[:, None]).sum(-1), (rel * e2[:, None]).sum(-1)], -1)
+    uv = np.linalg.solve(gram[:, None], rhs[..., None])[..., 0]
+    normal = np.cross(e1, e2) / (2 * area[:, None])
+    inside = ((uv >= -1e-9).all(-1) & (uv.sum(-1) <= 1 + 1e-9)
+              & (np.abs((rel * normal[:, None]).sum(-1)) < 1e-9))
+    owner = inside.argmax(axis=0)
+    assert inside.any(axis=0).all()
+    counts = np.bincount(owner, minlength=len(t))
+    expected = 60_000 * area / area.sum()
+    assert np.abs(counts - expected).max() < 5 * np.sqrt(expected.max())
+    # within a triangle, the samples fill it evenly: mean barycentre at its centroid
+    big = np.argmax(area)
+    mine = uv[big, owner == big]
+    assert np.allclose(mine.mean(axis=0), 1 / 3, atol=0.02)
+
+
 def test_quantize_puts_points_on_the_grid():
     out = attacks.quantize(PTS, 8)
     step = PHI / 256
