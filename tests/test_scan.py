@@ -53,7 +53,7 @@ def scanned(tmp_path_factory):
         "key": {"id": "scan-key", "secret_file": str(tmp / "key")},
         "watermark": {"n_clusters": 2, "cluster_size": 2000},
         "scan": {"suspects": str(tmp / "suspects"), "catalogue": str(tmp / "catalog.parquet"),
-                 "out": str(tmp / "scan")},
+                 "out": str(tmp / "scan"), "top_k": 2},
         "dask": {"n_workers": 2, "progress": "none"},
     }
     (tmp / "key").write_text(SECRET)
