@@ -282,6 +282,8 @@ def sample_triangles(vertices, triangles, n_points, rng, *, grid=1e-4):
     for column in key.view(np.uint64).T:
         tri_hash = _mix(tri_hash ^ column)
     area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    if not area.sum() > 0:
+        raise ValueError("the surface has no area to sample (no triangles, or only degenerate ones)")
     scale = 1.25 * n_points / area.sum()
     while True:
         count = np.floor(scale * area + _uniform(tri_hash, 0)).astype(np.int64)

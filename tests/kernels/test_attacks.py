@@ -90,6 +90,13 @@ def test_triangle_samples_ignore_the_order_of_triangles_and_corners():
     assert 0.9 < np.mean(d < 1e-12) < 1.0
 
 
+def test_a_surface_without_area_is_an_error_not_an_empty_sample():
+    v = np.zeros((3, 3))
+    for t in (np.zeros((0, 3), dtype=int), np.array([[0, 1, 2]])):
+        with pytest.raises(ValueError, match="no area"):
+            attacks.sample_triangles(v, t, 10, np.random.default_rng(0))
+
+
 def test_triangle_samples_are_uniform_over_the_area():
     rng = np.random.default_rng(4)
     v, t = _soup(rng)
