@@ -243,23 +243,23 @@ def clutter(points, factor, rng=None, *, n_objects=4):
     return scene(points, others, factor, rng)
 
 
-# name -> (function, takes a strength)
-def sample_triangles(vertices, triangles, n_points, rng, *, grid=1e-4):
+def sample_triangles(vertices, triangles, n_points, rng=None, *, grid=1e-4):
     """Area-uniform samples on a triangle soup, whatever its order.
 
     Each triangle draws its samples from a counter-based hash of its corners
     (rounded to ``grid``) and a seed taken from ``rng``: about
     ``1.25 n_points`` candidates in all, each with a random priority, of
     which the ``n_points`` of lowest priority are kept.  Reordering the
-    triangles, or their corners, changes nothing; a triangle that differs
-    changes only its own candidates.
+    triangles, their corners or the vertices changes nothing; a triangle
+    that differs changes its own candidates, and the others' only where the
+    total area moves a count or the cut.
 
     Parameters
     ----------
     vertices : (v, 3) float
     triangles : (t, 3) int
     n_points : int
-    rng : numpy.random.Generator
+    rng : int or numpy.random.Generator
     grid : float
         Rounding of the corners (in the units of ``vertices``) before they
         are hashed, well above the noise of the reconstruction's float32
@@ -269,18 +269,8 @@ def sample_triangles(vertices, triangles, n_points, rng, *, grid=1e-4):
     -------
     (n_points, 3) float, in random order
     """
-    seed = np.uint64(rng.integers(0, 2**63))
-    key = np.round(vertices[triangles] / grid).astype(np.int64)     # (t, 3, 3)
-    flat = key.reshape(-1, 3)
-    order = np.lexsort(flat.T[::-1]).reshape(-1)
-    rank = np.empty(len(flat), dtype=np.int64)
-    rank[order] = np.arange(len(flat))
-    corner_order = np.argsort(rank.reshape(-1, 3), axis=1)        # corners in lexicographic order
-    corners = np.take_along_axis(vertices[triangles], corner_order[:, :, None], axis=1)
-    key = np.take_along_axis(key, corner_order[:, :, None], axis=1).reshape(len(key), 9)
-    tri_hash = np.full(len(key), seed, dtype=np.uint64)
-    for column in key.view(np.uint64).T:
-        tri_hash = _mix(tri_hash ^ column)
+    seed = np.uint64(np.random.default_rng(rng).integers(0, 2**63))
+    corners, tri_hash = _canonical_triangles(vertices, triangles, grid, seed)
     area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
     if not area.sum() > 0:
         raise ValueError("the surface has no area to sample (no triangles, or only degenerate ones)")
@@ -302,6 +292,35 @@ def sample_triangles(vertices, triangles, n_points, rng, *, grid=1e-4):
     return a + u[:, None] * (b - a) + v[:, None] * (c - a)
 
 
+def _canonical_triangles(vertices, triangles, grid, seed):
+    """Corners in lexicographic order of their rounded coordinates, and a hash of each triangle.
+
+    Returns
+    -------
+    corners : (t, 3, 3) float
+    tri_hash : (t,) uint64
+        From the rounded corners and the seed; a triangle given more than
+        once mixes in its occurrence after the first (copies draw their own
+        samples).
+    """
+    key = np.round(vertices[triangles] / grid).astype(np.int64)     # (t, 3, 3)
+    flat = key.reshape(-1, 3)
+    rank = np.empty(len(flat), dtype=np.int64)
+    rank[np.lexsort(flat.T[::-1])] = np.arange(len(flat))
+    corner_order = np.argsort(rank.reshape(-1, 3), axis=1)[:, :, None]
+    corners = np.take_along_axis(vertices[triangles], corner_order, axis=1)
+    key = np.take_along_axis(key, corner_order, axis=1).reshape(len(key), 9)
+    tri_hash = np.full(len(key), seed, dtype=np.uint64)
+    for column in key.view(np.uint64).T:
+        tri_hash = _mix(tri_hash ^ column)
+    order = np.lexsort(key.T[::-1])
+    same = np.r_[False, (key[order][1:] == key[order][:-1]).all(axis=1)]
+    start = np.maximum.accumulate(np.where(same, 0, np.arange(len(order))))
+    occurrence = np.empty(len(order), dtype=np.uint64)
+    occurrence[order] = (np.arange(len(order)) - start).astype(np.uint64)
+    return corners, np.where(occurrence > 0, _mix(tri_hash ^ occurrence), tri_hash)
+
+
 def _mix(x):
     """SplitMix64 finaliser, elementwise on uint64."""
     x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
@@ -315,6 +334,7 @@ def _uniform(h, stream):
     return (x >> np.uint64(11)).astype(np.float64) / float(2**53)
 
 
+# name -> (function, takes a strength)
 ATTACKS = {
     "similarity": (paper_similarity, False),
     "random_similarity": (random_similarity, False),
