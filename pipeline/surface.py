@@ -32,12 +32,12 @@ def resample(points, n_points, rng=None, *, depth=8):
     No input point survives: samples are drawn uniformly on the reconstructed
     triangles, away from the (trimmed) low-density parts of the surface.
 
-    open3d's reconstruction is multithreaded: its vertices and triangles
-    come in another order at each call, and a few tenths of a per cent of
-    its cells take the other diagonal, so its own sampler draws other points
-    for the same seed.  :func:`~pipeline.kernels.attacks.sample_triangles`
-    draws them instead, from
-    each triangle's geometry and the seed: the same seed gives the same
+    open3d's reconstruction is multithreaded: its vertices come in another
+    order at each call, and a few tenths of a per cent of its triangles join
+    other vertices, so its own sampler, which walks the triangles in order,
+    draws other points for the same seed.
+    :func:`~pipeline.kernels.attacks.sample_triangles` draws them instead,
+    from each triangle's geometry and the seed: the same seed gives the same
     points, but for the few triangles that differ.
 
     Parameters

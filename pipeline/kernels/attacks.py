@@ -314,7 +314,8 @@ def _canonical_triangles(vertices, triangles, grid, seed):
     for column in key.view(np.uint64).T:
         tri_hash = _mix(tri_hash ^ column)
     order = np.lexsort(key.T[::-1])
-    same = np.r_[False, (key[order][1:] == key[order][:-1]).all(axis=1)]
+    ranked = key[order]
+    same = np.r_[False, (ranked[1:] == ranked[:-1]).all(axis=1)]
     start = np.maximum.accumulate(np.where(same, 0, np.arange(len(order))))
     occurrence = np.empty(len(order), dtype=np.uint64)
     occurrence[order] = (np.arange(len(order)) - start).astype(np.uint64)
