@@ -203,6 +203,39 @@ def leaks_bench(resume=None):
     _write(work, summary)
 
 
+def resample_bench(check=False):
+    """The resampled leaks of an issued benchmark drawn again (seed ``[2026, k]`` for leak k) and scanned.
+
+    Needs ``bench/results/leaks`` from a run of :func:`leaks_bench`.  With
+    ``check``, nothing is written or scanned: each leak is drawn from its
+    seed again and the share of its points found within 1e-5 of the size in
+    the file on disk is printed (the resample attack's reproducibility).
+    """
+    from scipy.spatial import cKDTree
+
+    from pipeline import surface
+    from pipeline.io.pointcloud import read_points, write_array
+    from pipeline.orchestrate.scan import run_scan
+
+    work = ROOT / "bench" / "results" / "leaks"
+    truth = json.loads((work / "truth.json").read_text())
+    for name, (_, asset, recipient, attack) in truth.items():
+        if attack != "resample:half":
+            continue
+        points = read_points(work / "marked" / recipient / f"{asset}.ply").points
+        drawn = surface.apply_chain(points, _chain(attack, len(points)),
+                                    np.random.default_rng([2026, int(name.split("-")[1])]))
+        if check:
+            d, _ = cKDTree(read_points(work / "suspects" / f"{name}.ply").points).query(drawn)
+            print(f"{name} {asset}: {np.mean(d < 1e-5 * np.ptp(points, axis=0).max()):.4f} of the points again")
+        else:
+            write_array(work / "suspects", name, drawn, "ply", keep_existing=False)
+    if not check:
+        t0 = time.perf_counter()
+        status = run_scan(_config(work, work / "manifests", work / "marked", "bench"), SECRET)
+        print(f"scan exit status {status} in {time.perf_counter() - t0:.0f} s; results in {work / 'scan'}")
+
+
 def _read_catalogue(work):
     import pyarrow.parquet as pq
 

@@ -1,4 +1,4 @@
-"""pointmark benchmarks: ``make bench`` (or ``python bench/run.py [spectral] [catalog] [scan] [fingerprint] [issue] [cli] [leaks] [tile]``).
+"""pointmark benchmarks: ``make bench`` (or ``python bench/run.py [spectral] [catalog] [scan] [fingerprint] [issue] [cli] [leaks] [leaks-resample] [leaks-resample-check] [tile]``).
 
 Every figure is a ratio of two timings taken side by side in this one run,
 since shared machines are noisy; each timing is the best of a few repeats.
@@ -301,6 +301,14 @@ def leaks_bench():
     run()
 
 
+def resample_bench(check=False):
+    """The leak benchmark's resampled leaks drawn again and scanned, or with ``check`` compared (see bench/leaks.py)."""
+    sys.path.insert(0, str(ROOT / "bench"))
+    from leaks import resample_bench as run
+
+    run(check=check)
+
+
 def tile_bench():
     """Embedding 1- and 10-million-point LAZ tiles (issue 15; about 45 minutes): see bench/tile.py."""
     sys.path.insert(0, str(ROOT / "bench"))
@@ -311,8 +319,8 @@ def tile_bench():
 
 BENCHES = {"spectral": spectral_bench, "catalog": catalog_bench, "scan": scan_bench,
            "fingerprint": fingerprint_bench, "issue": issue_bench, "cli": cli_bench, "leaks": leaks_bench,
-           "tile": tile_bench}
-DEFAULT = ["spectral", "catalog", "scan", "fingerprint", "issue", "cli"]   # "leaks" and "tile" run when named
+           "tile": tile_bench, "leaks-resample": resample_bench, "leaks-resample-check": lambda: resample_bench(check=True)}
+DEFAULT = ["spectral", "catalog", "scan", "fingerprint", "issue", "cli"]   # the others run when named
 
 
 def main(argv):
