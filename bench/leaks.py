@@ -236,6 +236,49 @@ def resample_bench(check=False):
         print(f"scan exit status {status} in {time.perf_counter() - t0:.0f} s; results in {work / 'scan'}")
 
 
+def trim_bench():
+    """Each whole-copy leak checked against its true asset with and without the trimmed fit.
+
+    Needs ``bench/results/leaks`` from a run of :func:`leaks_bench`.  The same
+    registration and detection path as the scan (``detect_from_ledger`` with
+    the asset named), ``detection.outlier_trim`` null and the config's value;
+    writes ``bench/results/leaks/trim.json`` and prints each attack's scores.
+    """
+    import dataclasses
+
+    from pipeline import config
+    from pipeline.orchestrate.detect import detect_from_ledger
+
+    work = ROOT / "bench" / "results" / "leaks"
+    truth = json.loads((work / "truth.json").read_text())
+    params = config.detect_params(_config(work, work / "manifests", work / "marked", "bench"))
+    variants = {"kept": dataclasses.replace(params, outlier_trim=None), "trimmed": params}
+    rows = []
+    for name, (kind, asset, recipient, attack) in sorted(truth.items()):
+        if kind != "leak" or attack not in ("outliers:0.5", "noise:0.5%", "resample:half", "removal:0.1"):
+            continue
+        row = {"suspect": name, "asset": asset, "recipient": recipient, "attack": attack}
+        for label, dp in variants.items():
+            r = detect_from_ledger(work / "suspects" / f"{name}.ply", work / "manifests", SECRET, dp, asset=asset,
+                                   store=work / "bases")
+            named = [a.get("recipient") for a in r.get("accused") or []]
+            score = r.get("best_score")
+            row[label] = {"verdict": r["verdict"], "score": float("nan") if score is None else score,
+                          "threshold": r["threshold"],
+                          "right": named == [recipient]}
+        rows.append(row)
+        print(name, asset, attack, *(f"{k} {row[k]['score']:.2f} {row[k]['verdict']}" for k in variants), flush=True)
+    (work / "trim.json").write_text(json.dumps(rows, indent=1))
+    for attack in sorted({r["attack"] for r in rows}):
+        sel = [r for r in rows if r["attack"] == attack]
+        ratio = np.array([r["trimmed"]["score"] / r["kept"]["score"] for r in sel])
+        print(f"{attack}: {len(sel)} leaks; right recipient kept {sum(r['kept']['right'] for r in sel)}, "
+              f"trimmed {sum(r['trimmed']['right'] for r in sel)}; median score kept "
+              f"{np.median([r['kept']['score'] for r in sel]):.2f}, trimmed "
+              f"{np.median([r['trimmed']['score'] for r in sel]):.2f}; trimmed/kept {ratio.min():.2f} to "
+              f"{ratio.max():.2f} (median {np.median(ratio):.2f})")
+
+
 def _read_catalogue(work):
     import pyarrow.parquet as pq
 

@@ -309,6 +309,14 @@ def resample_bench(check=False):
     run(check=check)
 
 
+def trim_bench():
+    """The whole-copy leaks against their true asset, fit trimmed and not (a few minutes): see bench/leaks.py."""
+    sys.path.insert(0, str(ROOT / "bench"))
+    from leaks import trim_bench as run
+
+    run()
+
+
 def tile_bench():
     """Embedding 1- and 10-million-point LAZ tiles (issue 15; about 45 minutes): see bench/tile.py."""
     sys.path.insert(0, str(ROOT / "bench"))
@@ -319,7 +327,8 @@ def tile_bench():
 
 BENCHES = {"spectral": spectral_bench, "catalog": catalog_bench, "scan": scan_bench,
            "fingerprint": fingerprint_bench, "issue": issue_bench, "cli": cli_bench, "leaks": leaks_bench,
-           "tile": tile_bench, "leaks-resample": resample_bench, "leaks-resample-check": lambda: resample_bench(check=True)}
+           "tile": tile_bench, "leaks-resample": resample_bench, "leaks-resample-check": lambda: resample_bench(check=True),
+           "leaks-trim": trim_bench}
 DEFAULT = ["spectral", "catalog", "scan", "fingerprint", "issue", "cli"]   # the others run when named
 
 

@@ -81,6 +81,7 @@ class DetectParams:
     ratio_gate: float = 0.5           # clean suspects: of matches nearer than this x the second nearest
     gate_switch: float = 0.4          # noise (x median spacing) at which the fixed gate takes over
     epsilon: float = 1e-6             # probability of accusing any innocent, per suspect
+    outlier_trim: float | None = 10.0  # matches off the surface by more are left out of the fit (None: kept)
 
 
 @dataclass(frozen=True)
@@ -818,7 +819,7 @@ def _coefficient_differences(aligned, reference, specs, bases, detect_params, di
         iterations=detect_params.iterations, ridge=detect_params.ridge,
         tangential_gate=detect_params.tangential_gate, ratio_gate=detect_params.ratio_gate,
         gate_switch=detect_params.gate_switch, normal_only=displacement == "normal", grams=grams,
-        spacing=spacing,
+        spacing=spacing, trim=detect_params.outlier_trim,
     )
 
 

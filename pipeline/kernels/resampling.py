@@ -13,9 +13,11 @@ that the original, deformed by E X, passes through the suspect points.  Each
 suspect point pulls on its nearest deformed original point; the pull is split
 into the normal part and the tangential part, weighted by the inverse of
 their measured variances (point-to-plane when the suspect was resampled,
-point-to-point when its points are the original's).  A small ridge keeps
-clusters with few suspect points well posed.  The fit is repeated with the
-correspondences of the deformed original.
+point-to-point when its points are the original's).  Matches whose normal
+misfit exceeds ``trim`` robust standard deviations are left out (a skipped
+estimator: junk points near the surface would otherwise pull the fit).  A small
+ridge keeps clusters with few suspect points well posed.  The fit is repeated
+with the correspondences of the deformed original.
 """
 
 from __future__ import annotations
@@ -124,7 +126,8 @@ def normal_gram(basis, normals):
 
 def fit_spectral_displacement(original, normals, suspect, clusters, bases, *,
                               iterations=3, ridge=1e-3, cut=None, tangential_gate=0.25,
-                              ratio_gate=0.5, gate_switch=0.4, normal_only=False, grams=None, spacing=None):
+                              ratio_gate=0.5, gate_switch=0.4, normal_only=False, grams=None, spacing=None,
+                              trim=None):
     """Least-squares coefficient differences of every cluster.
 
     Parameters
@@ -159,6 +162,10 @@ def fit_spectral_displacement(original, normals, suspect, clusters, bases, *,
         matched other than once instead of being summed over every point.
     spacing : (n,) float, optional
         :func:`nearest_spacing` of ``original`` (computed when not given).
+    trim : float, optional
+        Leave out, per cluster and iteration, the matches whose misfit along
+        the normal is over ``trim`` times its root median square (at least 1,
+        so that half the matches always stay).  None keeps every match.
 
     Returns
     -------
@@ -203,7 +210,7 @@ def fit_spectral_displacement(original, normals, suspect, clusters, bases, *,
                 reliable = dist[pick] < tangential_gate * spacing[nearest[pick]]
             deltas[c] = _solve_cluster(
                 original, normals, deformed, suspect[pick], nearest[pick], reliable, members,
-                basis, ridge, gram=grams[c] if (grams is not None and normal_only) else None,
+                basis, ridge, gram=grams[c] if (grams is not None and normal_only) else None, trim=trim,
             )
     return deltas, support
 
@@ -229,7 +236,8 @@ def normal_noise(points, targets, normals):
     return 1.4826 * float(np.median(np.abs(offset - np.median(offset))))
 
 
-def _solve_cluster(original, normals, deformed, points, targets, reliable, members, basis, ridge, gram=None):
+def _solve_cluster(original, normals, deformed, points, targets, reliable, members, basis, ridge, gram=None,
+                   trim=None):
     """One weighted least-squares solve for a cluster's coefficient differences."""
     local = np.full(len(original), -1, dtype=np.int64)
     local[members] = np.arange(len(members))
@@ -240,6 +248,7 @@ def _solve_cluster(original, normals, deformed, points, targets, reliable, membe
     normal_part = np.einsum("ki,ki->k", current, n)
     tangential = current - normal_part[:, None] * n
     var_n = max(float(np.median(normal_part**2)), 1e-30)
+    kept = np.ones(len(n)) if trim is None else (normal_part**2 <= trim**2 * var_n).astype(float)
     outer = n[:, :, None] * n[:, None, :]               # (k, 3, 3)
     weight = outer / var_n
     if reliable.any():
@@ -247,12 +256,14 @@ def _solve_cluster(original, normals, deformed, points, targets, reliable, membe
         # neighbour chosen among several candidates biases it towards zero
         var_t = max(float(np.median((tangential[reliable] ** 2).sum(axis=1)) / 2.0), var_n)
         weight = weight + reliable[:, None, None] * (np.eye(3) - outer) / var_t
+    weight = weight * kept[:, None, None]
     size = len(members)
     rhs_points = np.zeros((size, 3))
     np.add.at(rhs_points, j, np.einsum("kab,kb->ka", weight, residual))
     k = basis.shape[1]
     if gram is not None and not reliable.any():
-        normal_matrix = _normal_matrix_from_gram(gram, np.bincount(j, minlength=size), normals[members], basis) / var_n
+        counts = np.bincount(j, weights=kept, minlength=size)
+        normal_matrix = _normal_matrix_from_gram(gram, counts, normals[members], basis) / var_n
     else:
         m = np.zeros((size, 3, 3))
         np.add.at(m, j, weight)
@@ -270,7 +281,10 @@ def _solve_cluster(original, normals, deformed, points, targets, reliable, membe
 
 
 def _normal_matrix_from_gram(gram, counts, normals, basis):
-    """sum_j counts_j g_j g_j^T = G^T G + G_d^T diag(counts - 1) G_d over the points with counts != 1."""
+    """sum_j counts_j g_j g_j^T = G^T G + G_d^T diag(counts - 1) G_d over the points with counts != 1.
+
+    ``counts`` (n_c,) float: matches kept per cluster point.
+    """
     other = np.flatnonzero(counts != 1)
     if len(other) == 0:
         return gram.copy()

@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 from scipy.spatial import cKDTree
 
 from pipeline.kernels import graph, spectral
@@ -74,6 +75,16 @@ def test_normal_only_fit_recovers_a_normal_direction_watermark_from_fresh_sample
     # fresh, denser sample of that surface shares no point with it.  The
     # normal-only model fits it better than the xyz model, which also tries to
     # explain motion along the surface that is not there.
+    assert _normal_fit_score(None, junk=0, normal_only=True) > 0.5
+    assert _normal_fit_score(None, junk=0, normal_only=True) > _normal_fit_score(None, junk=0, normal_only=False)
+
+
+def _normal_mark_and_samples(junk=0):
+    """A normal-direction mark on a sphere patch, a fresh sample of it and of the unmarked patch.
+
+    ``junk`` points are added to both samples, each off the surface along its
+    normal by 1 to 3 median spacings: within the fit's reach, far beyond the mark.
+    """
     from pipeline.kernels.modulation import along_normals
 
     original = sphere_patch(3000, rng=0)
@@ -84,19 +95,36 @@ def test_normal_only_fit_recovers_a_normal_direction_watermark_from_fresh_sample
     moved, _ = along_normals(basis @ delta, normals)
     fresh = sphere_patch(12000, rng=7)
     _, owner = cKDTree(original).query(fresh)
-    suspect = (fresh + moved[owner])[rng.permutation(len(fresh))]
-    score = {}
-    for normal_only in (False, True):
-        fit = [fit_spectral_displacement(original, normals, cloud, [np.arange(len(original))], [basis],
-                                         normal_only=normal_only)[0][0] for cloud in (suspect, fresh)]
-        estimate = fit[0] - fit[1]
-        score[normal_only] = np.corrcoef(estimate.ravel(), delta.ravel())[0, 1]
-    assert score[True] > 0.5
-    assert score[True] > score[False]
+    at = rng.integers(0, len(original), junk)
+    offset = rng.choice([-1.0, 1.0], junk) * rng.uniform(1, 3, junk) * np.median(nearest_spacing(original))
+    extra = original[at] + offset[:, None] * normals[at]
+    suspect = np.vstack([fresh + moved[owner], extra])[rng.permutation(len(fresh) + junk)]
+    return original, normals, basis, delta, suspect, np.vstack([fresh, extra])
 
 
-def test_the_normal_model_gram_shortcut_equals_the_full_normal_equations():
-    """Points matched 0, 1 or 3 times: G^T G plus the update at those points is the full sum."""
+def _normal_fit_score(trim, junk, normal_only=True):
+    """Correlation of the fitted mark with the embedded one."""
+    original, normals, basis, delta, suspect, unmarked = _normal_mark_and_samples(junk)
+    fit = [fit_spectral_displacement(original, normals, cloud, [np.arange(len(original))], [basis],
+                                     normal_only=normal_only, trim=trim)[0][0] for cloud in (suspect, unmarked)]
+    return np.corrcoef((fit[0] - fit[1]).ravel(), delta.ravel())[0, 1]
+
+
+def test_trimming_leaves_junk_near_the_surface_out_of_the_fit():
+    kept = _normal_fit_score(None, junk=6000)
+    trimmed = _normal_fit_score(10.0, junk=6000)
+    assert trimmed > 0.95 and trimmed > kept + 0.2
+
+
+def test_trimming_leaves_a_clean_sample_nearly_as_it_was():
+    kept = _normal_fit_score(None, junk=0)
+    trimmed = _normal_fit_score(10.0, junk=0)
+    assert trimmed > 0.95 and abs(trimmed - kept) < 0.01
+
+
+@pytest.mark.parametrize("trim", [None, 3.0])
+def test_the_normal_model_gram_shortcut_equals_the_full_normal_equations(trim):
+    """Points matched 0, 1 or 3 times, some trimmed: G^T G plus the update at those points is the full sum."""
     from pipeline.kernels import resampling
 
     rng = np.random.default_rng(5)
@@ -107,9 +135,15 @@ def test_the_normal_model_gram_shortcut_equals_the_full_normal_equations():
     basis = np.linalg.qr(rng.normal(size=(400, 24)))[0]
     targets = np.concatenate([members[:300], np.repeat(members[300:320], 3)])     # 80 never matched
     points = original[targets] + 0.01 * rng.normal(size=(len(targets), 3))
+    points[::25] += 0.2 * normals[targets[::25]]                                   # trimmed at 3
     none = np.zeros(len(targets), dtype=bool)
-    full = resampling._solve_cluster(original, normals, original, points, targets, none, members, basis, 1.0)
+    full = resampling._solve_cluster(original, normals, original, points, targets, none, members, basis, 1.0,
+                                     trim=trim)
     gram = resampling.normal_gram(basis, normals[members])
     fast = resampling._solve_cluster(original, normals, original, points, targets, none, members, basis, 1.0,
-                                     gram=gram)
+                                     gram=gram, trim=trim)
     assert np.allclose(fast, full, rtol=1e-10, atol=1e-14) and np.abs(full).max() > 1e-3
+    if trim is not None:
+        kept = resampling._solve_cluster(original, normals, original, points, targets, none, members, basis,
+                                         1.0)
+        assert not np.allclose(kept, full, rtol=1e-3)
