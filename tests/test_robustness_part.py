@@ -55,7 +55,7 @@ def _detect(marked, name, suspect, registration="robust"):
     points, _, frame, specs, bases, params, bits = marked(name)
     dparams = replace(config.detect_params(DEFAULT), registration=registration)
     estimate = estimate_differences(suspect - frame.centre, points - frame.centre, specs, bases, dparams,
-                                    params.displacement)
+                                    params)
     result = decode(estimate, specs, MATERIAL, params, dparams)
     return int((np.asarray(result["bits"]) != bits).sum()), result
 

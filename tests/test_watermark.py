@@ -108,3 +108,21 @@ def test_the_convolutional_code_spends_the_same_motion_and_decodes_where_repetit
 def test_a_code_the_chips_cannot_carry_is_refused():
     with pytest.raises(watermark.WatermarkError, match="chip_rate to at least 3"):
         watermark.plan_clusters(np.zeros((10, 3)), replace(PARAMS, code="convolutional", chip_rate=2))
+
+
+@pytest.mark.parametrize("cap", [None, 0.01])
+def test_no_point_moves_beyond_the_reach_detection_keeps(tile, reference, cap):
+    """A message and a second mark of the same kind (as a fingerprint is) stay within mark_reach."""
+    frame, centred, specs, bases = reference
+    params = replace(PARAMS, max_displacement=cap)
+    other = keys.derive_key_material(b"amplitude-test-secret-0123456789", "another")
+    moved = sum(watermark.embed_with_bases(centred, specs, bases, material, BITS, params, frame.phi) - centred
+                for material in (MATERIAL, other))
+    reach = watermark.mark_reach(params, centred, specs, bases)
+    inside = np.zeros(len(centred), dtype=bool)
+    for s in specs:
+        inside[s.members] = True
+    distance = np.sqrt((moved**2).sum(axis=1))
+    assert (reach[~inside] == 0).all() and (reach[inside] > 0).all()
+    assert (distance <= reach).all()
+    assert distance.max() > 0.2 * reach[inside].max()      # the reach is not vacuous

@@ -14,8 +14,9 @@ suspect point pulls on its nearest deformed original point; the pull is split
 into the normal part and the tangential part, weighted by the inverse of
 their measured variances (point-to-plane when the suspect was resampled,
 point-to-point when its points are the original's).  Matches whose normal
-misfit exceeds ``trim`` robust standard deviations are left out (a skipped
-estimator: junk points near the surface would otherwise pull the fit).  A small
+misfit exceeds ``trim`` robust standard deviations, and more than the mark
+itself can move a point, are left out (a skipped estimator: junk points near
+the surface would otherwise pull the fit).  A small
 ridge keeps clusters with few suspect points well posed.  The fit is repeated
 with the correspondences of the deformed original.
 """
@@ -127,7 +128,7 @@ def normal_gram(basis, normals):
 def fit_spectral_displacement(original, normals, suspect, clusters, bases, *,
                               iterations=3, ridge=1e-3, cut=None, tangential_gate=0.25,
                               ratio_gate=0.5, gate_switch=0.4, normal_only=False, grams=None, spacing=None,
-                              trim=None):
+                              trim=None, reach=None):
     """Least-squares coefficient differences of every cluster.
 
     Parameters
@@ -165,7 +166,12 @@ def fit_spectral_displacement(original, normals, suspect, clusters, bases, *,
     trim : float, optional
         Leave out, per cluster and iteration, the matches whose misfit along
         the normal is over ``trim`` times its root median square (at least 1,
-        so that half the matches always stay).  None keeps every match.
+        so that half the matches always stay) and over the cluster's
+        ``reach``.  None keeps every match.
+    reach : (n,) float, optional
+        Misfit along the normal that the watermark itself can cause at each
+        original point: a match within it is always kept, however many
+        matches have no misfit at all (an unmarked original beside the copy).
 
     Returns
     -------
@@ -174,6 +180,9 @@ def fit_spectral_displacement(original, normals, suspect, clusters, bases, *,
     support : list of int
         Suspect points used per cluster (last iteration).
     """
+    if trim is not None and not trim >= 1.0:
+        raise ValueError(f"trim must be at least 1 (got {trim})")
+    reach = np.zeros(len(original)) if reach is None else np.asarray(reach, dtype=np.float64)
     spacing = nearest_spacing(original) if spacing is None else spacing
     if cut is None:
         cut = 4.0 * float(np.median(spacing))
@@ -210,7 +219,8 @@ def fit_spectral_displacement(original, normals, suspect, clusters, bases, *,
                 reliable = dist[pick] < tangential_gate * spacing[nearest[pick]]
             deltas[c] = _solve_cluster(
                 original, normals, deformed, suspect[pick], nearest[pick], reliable, members,
-                basis, ridge, gram=grams[c] if (grams is not None and normal_only) else None, trim=trim,
+                basis, ridge, gram=grams[c] if (grams is not None and normal_only) else None,
+                trim=None if trim is None else (trim, reach[nearest[pick]]),
             )
     return deltas, support
 
@@ -238,7 +248,10 @@ def normal_noise(points, targets, normals):
 
 def _solve_cluster(original, normals, deformed, points, targets, reliable, members, basis, ridge, gram=None,
                    trim=None):
-    """One weighted least-squares solve for a cluster's coefficient differences."""
+    """One weighted least-squares solve for a cluster's coefficient differences.
+
+    ``trim`` is None or (factor, reach at each target): see :func:`fit_spectral_displacement`.
+    """
     local = np.full(len(original), -1, dtype=np.int64)
     local[members] = np.arange(len(members))
     j = local[targets]
@@ -248,7 +261,9 @@ def _solve_cluster(original, normals, deformed, points, targets, reliable, membe
     normal_part = np.einsum("ki,ki->k", current, n)
     tangential = current - normal_part[:, None] * n
     var_n = max(float(np.median(normal_part**2)), 1e-30)
-    kept = np.ones(len(n)) if trim is None else (normal_part**2 <= trim**2 * var_n).astype(float)
+    kept = np.ones(len(n))
+    if trim is not None:
+        kept = (normal_part**2 <= np.maximum(trim[0] ** 2 * var_n, trim[1] ** 2)).astype(float)
     outer = n[:, :, None] * n[:, None, :]               # (k, 3, 3)
     weight = outer / var_n
     if reliable.any():

@@ -93,7 +93,7 @@ def check_asset(suspect_path, original_path, rows, materials, store, detect_para
                              {"membership": ref_rows[0]["cluster_membership_digests"],
                               "basis": ref_rows[0]["cluster_basis_digests"]}, detection=True)
         est = estimate_differences(suspect - ref.centre, original - ref.centre, ref.specs, ref.bases,
-                                   detect_params, params.displacement, **ref.detection_aids())
+                                   detect_params, params, **ref.detection_aids())
         seconds["registration"] += est["seconds_registration"]
         seconds["estimate"] += est["seconds_estimate"]
         t0 = time.perf_counter()

@@ -101,7 +101,7 @@ def trial(model_path, cache_path, params, detect_params, chain_text, method, see
     attacked = apply_chain(marked, chain + [("shuffle", None)], rng=seed, faces=cloud.faces())
     t2 = time.perf_counter()
     estimate = estimate_differences(attacked - centre, points - centre, specs, bases, dparams,
-                                    params.displacement, **ref.detection_aids())
+                                    params, **ref.detection_aids())
     result = decode(estimate, specs, material, params, dparams)
     errors = int((np.asarray(result["bits"]) != bits).sum())
     dist = _distortion_of(points, marked, (str(model_path), tuple(cache_path), params, material))
@@ -214,7 +214,7 @@ def fingerprint_trial(model_path, handle, params, detect_params, chain_text, cas
     attacked = apply_chain(suspect + ref.centre, parse_chain(chain_text) + [("shuffle", None)], rng=seed,
                            faces=cloud.faces())
     est = estimate_differences(attacked - ref.centre, centred, ref.specs, ref.bases, detect_params,
-                               params.displacement, **ref.detection_aids())
+                               params, **ref.detection_aids())
     s = fingerprint.scores(fingerprint_observation(est, ref.specs, params), bank)
     accused, _ = fingerprint.accuse(s, n_recipients, detect_params.epsilon)
     innocent = np.setdiff1d(np.arange(n_recipients), colluders)
@@ -256,7 +256,7 @@ def false_positives(model_path, cache_path, params, detect_params, material, n_k
     rows = []
     for label, suspect in suspects.items():
         estimate = estimate_differences(suspect - centre, points - centre, specs, bases, detect_params,
-                                        params.displacement, **ref.detection_aids())
+                                        params, **ref.detection_aids())
         for k in range(n_keys):
             wrong = keys.derive_key_material(b"evaluation-wrong-keys", f"wrong-{k}")
             res = decode(estimate, specs, wrong, params, detect_params)

@@ -102,11 +102,17 @@ def _normal_mark_and_samples(junk=0):
     return original, normals, basis, delta, suspect, np.vstack([fresh, extra])
 
 
+def _reach(basis, alpha=0.004):
+    """The watermark's reach at each point, as ``watermark.mark_reach`` computes it."""
+    return 4.0 * np.sqrt(6.0) * alpha * np.linalg.norm(basis, axis=1)
+
+
 def _normal_fit_score(trim, junk, normal_only=True):
     """Correlation of the fitted mark with the embedded one."""
     original, normals, basis, delta, suspect, unmarked = _normal_mark_and_samples(junk)
     fit = [fit_spectral_displacement(original, normals, cloud, [np.arange(len(original))], [basis],
-                                     normal_only=normal_only, trim=trim)[0][0] for cloud in (suspect, unmarked)]
+                                     normal_only=normal_only, trim=trim, reach=_reach(basis))[0][0]
+           for cloud in (suspect, unmarked)]
     return np.corrcoef((fit[0] - fit[1]).ravel(), delta.ravel())[0, 1]
 
 
@@ -120,6 +126,25 @@ def test_trimming_leaves_a_clean_sample_nearly_as_it_was():
     kept = _normal_fit_score(None, junk=0)
     trimmed = _normal_fit_score(10.0, junk=0)
     assert trimmed > 0.95 and abs(trimmed - kept) < 0.01
+
+
+def test_trimming_keeps_the_mark_beside_an_unmarked_original():
+    # Half the matches have no misfit at all: their median square is 0, and
+    # without the mark's reach every marked match would be trimmed.
+    original, normals, basis, delta, _, _ = _normal_mark_and_samples(0)
+    from pipeline.kernels.modulation import along_normals
+
+    moved, _ = along_normals(basis @ delta, normals)
+    suspect = np.vstack([original + moved, original])
+    members = [np.arange(len(original))]
+    fit = {trim: fit_spectral_displacement(original, normals, suspect, members, [basis], normal_only=True,
+                                           trim=trim, reach=reach)[0][0]
+           for trim, reach in [(None, None), (10.0, _reach(basis))]}
+    for estimate in fit.values():
+        assert np.corrcoef(estimate.ravel(), delta.ravel())[0, 1] > 0.5
+    assert np.allclose(fit[None], fit[10.0])
+    with pytest.raises(ValueError, match="at least 1"):
+        fit_spectral_displacement(original, normals, suspect, members, [basis], trim=0.5)
 
 
 @pytest.mark.parametrize("trim", [None, 3.0])
@@ -137,6 +162,7 @@ def test_the_normal_model_gram_shortcut_equals_the_full_normal_equations(trim):
     points = original[targets] + 0.01 * rng.normal(size=(len(targets), 3))
     points[::25] += 0.2 * normals[targets[::25]]                                   # trimmed at 3
     none = np.zeros(len(targets), dtype=bool)
+    trim = None if trim is None else (trim, 0.0)
     full = resampling._solve_cluster(original, normals, original, points, targets, none, members, basis, 1.0,
                                      trim=trim)
     gram = resampling.normal_gram(basis, normals[members])

@@ -49,7 +49,7 @@ def test_a_suspect_that_lands_nowhere_on_the_original_is_a_failed_registration()
     specs = plan_clusters(points, params)
     bases = [cluster_basis(points[s.members], params)[1] for s in specs]
     dparams = replace(config.detect_params(config.load_config(None)), registration="none")
-    here = estimate_differences(points[::-1], points, specs, bases, dparams, params.displacement)["registration"]
-    away = estimate_differences(points + 10.0, points, specs, bases, dparams, params.displacement)["registration"]
+    here = estimate_differences(points[::-1], points, specs, bases, dparams, params)["registration"]
+    away = estimate_differences(points + 10.0, points, specs, bases, dparams, params)["registration"]
     assert not here["failed"] and here["fitness"] > 0.99 and here["coverage"] > 0.99
     assert away["failed"] and away["fitness"] == 0.0 and away["coverage"] == 0.0
