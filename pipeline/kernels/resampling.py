@@ -166,8 +166,8 @@ def fit_spectral_displacement(original, normals, suspect, clusters, bases, *,
     trim : float, optional
         Leave out, per cluster and iteration, the matches whose misfit along
         the normal is over ``trim`` times its root median square (at least 1,
-        so that half the matches always stay) and over the cluster's
-        ``reach``.  None keeps every match.
+        so that half the matches always stay) and over the ``reach`` of
+        the point matched.  None keeps every match.
     reach : (n,) float, optional
         Misfit along the normal that the watermark itself can cause at each
         original point: a match within it is always kept, however many
