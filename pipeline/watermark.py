@@ -820,20 +820,19 @@ def _coefficient_differences(aligned, reference, specs, bases, detect_params, pa
         iterations=detect_params.iterations, ridge=detect_params.ridge,
         tangential_gate=detect_params.tangential_gate, ratio_gate=detect_params.ratio_gate,
         gate_switch=detect_params.gate_switch, normal_only=params.displacement == "normal", grams=grams,
-        spacing=spacing, trim=detect_params.outlier_trim, reach=mark_reach(params, reference, specs, bases),
+        spacing=spacing, trim=detect_params.outlier_trim,
+        reach=None if detect_params.outlier_trim is None else mark_reach(params, reference, specs, bases),
     )
 
 
 def mark_reach(params, reference, specs, bases):
     """Misfit along the normal that the message and a fingerprint can cause at each point.
 
-    Each used coefficient moves by +-alpha with the key's signs, so along
-    each axis point j moves with standard deviation alpha ||E_j|| (its row
-    of the used columns); three axes and two marks give sqrt(6) of that, and
-    the reach is 4 times it (at most twice the cap, each mark being capped on
-    its own).  Over 18 issued copies of 6 leak-benchmark assets (clusters of
-    2,400 points, beta 0.002) no point moved farther than 0.61 of its reach,
-    and 99.9 % of them under 0.43.
+    :func:`kernels.modulation.spread_reach` on each cluster's used columns,
+    at most twice the cap (each mark is capped on its own).  Over 18 issued
+    copies of 6 leak-benchmark assets (clusters of 2,400 points, beta 0.002)
+    no point moved farther than 0.61 of its reach, and 99.9 % of them under
+    0.43.
 
     Parameters
     ----------
@@ -850,8 +849,7 @@ def mark_reach(params, reference, specs, bases):
     used = slice(params.first_coefficient, params.first_coefficient + params.total_bits * params.chip_rate)
     reach = np.zeros(len(reference))
     for s, e in zip(specs, bases):
-        alpha = cluster_amplitude(params, phi, reference[s.members])
-        reach[s.members] = 4.0 * np.sqrt(6.0) * alpha * np.sqrt((e[:, used] ** 2).sum(axis=1))
+        reach[s.members] = modulation.spread_reach(e[:, used], cluster_amplitude(params, phi, reference[s.members]))
     if params.max_displacement is not None:
         reach = np.minimum(reach, 2.0 * params.max_displacement)
     return reach

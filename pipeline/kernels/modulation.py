@@ -23,7 +23,7 @@ from scipy import special
 
 __all__ = [
     "hex_to_bits", "bits_to_hex", "crc_bits", "chips", "spread", "despread",
-    "combine_scores", "p_value_present", "p_value_payload", "p_value_codeword", "along_normals",
+    "combine_scores", "p_value_present", "p_value_payload", "p_value_codeword", "along_normals", "spread_reach",
 ]
 
 _CRC_POLYS = {8: 0x07, 16: 0x1021}
@@ -148,6 +148,27 @@ def spread(bits, chip_rate, sequences, amplitude, positions):
     delta = np.zeros((int(positions.max()) + 1, 3))
     delta[positions, :] = amplitude * (b[None, :] * sequences).T
     return delta
+
+
+def spread_reach(basis, amplitude):
+    """How far two marks spread on ``basis`` can move each point: 4 sqrt(6) amplitude ||E_j||.
+
+    Each coefficient moves by +-amplitude with a key's signs, so along each
+    axis point j moves with standard deviation amplitude ||E_j||; three axes
+    and two marks (a message and a fingerprint) give sqrt(6) of that.
+
+    Parameters
+    ----------
+    basis : (n_c, n_chips) float
+        The columns the chips use.
+    amplitude : float
+        alpha.
+
+    Returns
+    -------
+    (n_c,) float
+    """
+    return 4.0 * np.sqrt(6.0) * amplitude * np.linalg.norm(basis, axis=1)
 
 
 def despread(delta, chip_rate, sequences, positions):

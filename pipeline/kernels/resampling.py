@@ -261,7 +261,7 @@ def _solve_cluster(original, normals, deformed, points, targets, reliable, membe
     normal_part = np.einsum("ki,ki->k", current, n)
     tangential = current - normal_part[:, None] * n
     var_n = max(float(np.median(normal_part**2)), 1e-30)
-    kept = np.ones(len(n))
+    kept = None
     if trim is not None:
         kept = (normal_part**2 <= np.maximum(trim[0] ** 2 * var_n, trim[1] ** 2)).astype(float)
     outer = n[:, :, None] * n[:, None, :]               # (k, 3, 3)
@@ -271,7 +271,8 @@ def _solve_cluster(original, normals, deformed, points, targets, reliable, membe
         # neighbour chosen among several candidates biases it towards zero
         var_t = max(float(np.median((tangential[reliable] ** 2).sum(axis=1)) / 2.0), var_n)
         weight = weight + reliable[:, None, None] * (np.eye(3) - outer) / var_t
-    weight = weight * kept[:, None, None]
+    if kept is not None:
+        weight = weight * kept[:, None, None]
     size = len(members)
     rhs_points = np.zeros((size, 3))
     np.add.at(rhs_points, j, np.einsum("kab,kb->ka", weight, residual))
@@ -298,7 +299,7 @@ def _solve_cluster(original, normals, deformed, points, targets, reliable, membe
 def _normal_matrix_from_gram(gram, counts, normals, basis):
     """sum_j counts_j g_j g_j^T = G^T G + G_d^T diag(counts - 1) G_d over the points with counts != 1.
 
-    ``counts`` (n_c,) float: matches kept per cluster point.
+    ``counts`` (n_c,): matches (kept) per cluster point.
     """
     other = np.flatnonzero(counts != 1)
     if len(other) == 0:

@@ -137,3 +137,13 @@ def test_the_codeword_p_value_is_valid_under_the_null_and_sees_a_weak_coded_mark
         hits["chi2"] += mod.p_value_present(z) < 1e-6
         hits["word"] += mod.p_value_codeword(z, coding.encode(bits, "convolutional"), n_bits) < 1e-6
     assert hits["word"] > hits["chi2"] + 10, hits
+
+
+def test_spread_reach_bounds_two_marks_and_scales_with_alpha():
+    rng = np.random.default_rng(11)
+    basis = np.linalg.qr(rng.normal(size=(2000, 320)))[0]
+    reach = mod.spread_reach(basis, 0.5)
+    two = sum(basis @ (0.5 * rng.choice([-1.0, 1.0], size=(320, 3))) for _ in range(2))
+    distance = np.linalg.norm(two, axis=1)
+    assert (distance <= reach).all() and distance.max() > 0.3 * reach.max()
+    assert np.allclose(mod.spread_reach(basis, 1.0), 2.0 * reach)
