@@ -88,7 +88,7 @@ def _config(work, manifests, out, key_id):
         f"catalog.source={work / 'catalog.parquet'}", f"recipients=[{', '.join(RECIPIENTS)}]", f"key.id={key_id}",
         f"output.dir={out}", f"output.manifests={manifests}", f"output.bases={work / 'bases'}", "cluster_size=2400",
         f"scan.suspects={work / 'suspects'}", f"scan.catalogue={work / 'catalog.parquet'}",
-        f"scan.manifests={work / 'manifests'}", f"scan.out={work / 'scan'}", "scan.top_k=3",
+        f"scan.manifests={work / 'manifests'}", f"scan.out={work / 'scan'}", "scan.top_k=5",
         "dask.progress=none", "dask.n_workers=2"])
 
 
@@ -277,6 +277,138 @@ def trim_bench():
               f"{np.median([r['kept']['score'] for r in sel]):.2f}, trimmed "
               f"{np.median([r['trimmed']['score'] for r in sel]):.2f}; trimmed/kept {ratio.min():.2f} to "
               f"{ratio.max():.2f} (median {np.median(ratio):.2f})")
+
+
+PART_ATTACKS = ATTACKS[:3]   # crops and scenes: the suspect is part of the asset, or the asset part of it
+
+
+def parts_bench():
+    """The part and scene leaks of an issued benchmark drawn again where their files are missing.
+
+    Needs ``bench/results/leaks`` from a run of :func:`leaks_bench`.  Leak k
+    is drawn from its issued copy with seed ``[2026, k]`` (as
+    :func:`resample_bench` draws); a leak whose file exists is kept.
+    """
+    from pipeline import surface
+    from pipeline.io.pointcloud import read_points, write_array
+
+    work = ROOT / "bench" / "results" / "leaks"
+    truth = json.loads((work / "truth.json").read_text())
+    drawn = 0
+    for name, (_, asset, recipient, attack) in truth.items():
+        if attack not in PART_ATTACKS or (work / "suspects" / f"{name}.ply").exists():
+            continue
+        points = read_points(work / "marked" / recipient / f"{asset}.ply").points
+        write_array(work / "suspects", name, surface.apply_chain(
+            points, _chain(attack, len(points)), np.random.default_rng([2026, int(name.split("-")[1])])), "ply")
+        drawn += 1
+    print(f"{drawn} leaks drawn into {work / 'suspects'}")
+
+
+def rescan_bench():
+    """Every leak of an issued benchmark scanned afresh in one run, today's config, into ``leaks/rescan``.
+
+    Needs ``bench/results/leaks`` from a run of :func:`leaks_bench` (and
+    :func:`parts_bench` where part leaks are missing).  The leaks are copied
+    into ``rescan/suspects``; an interrupted run resumes.  Negatives are not
+    scanned.  Writes ``rescan/summary.json`` and prints each attack's counts.
+    """
+    from pipeline.orchestrate.scan import read_scan, run_scan
+
+    work = ROOT / "bench" / "results" / "leaks"
+    out = work / "rescan"
+    truth = {n: tuple(v) for n, v in json.loads((work / "truth.json").read_text()).items()
+             if v[0] == "leak" and (work / "suspects" / f"{n}.ply").exists()}
+    (out / "suspects").mkdir(parents=True, exist_ok=True)
+    for name in truth:
+        if not (out / "suspects" / f"{name}.ply").exists():
+            shutil.copy2(work / "suspects" / f"{name}.ply", out / "suspects")
+    cfg = _config(work, work / "manifests", work / "marked", "bench")
+    cfg["scan"]["suspects"], cfg["scan"]["out"] = str(out / "suspects"), str(out / "scan")
+    t0 = time.perf_counter()
+    status = run_scan(cfg, SECRET)
+    wall = time.perf_counter() - t0
+    results = {Path(r["suspect_path"]).stem: r for r in sorted(read_scan(out / "scan"), key=lambda r: r["scanned_at"])}
+    s = _summarise(truth, results, wall, status, len(_read_catalogue(work)), float("nan"))
+    s["misses"] = [(n, a, attack, results[n]["verdict"], results[n].get("candidate_asset"),
+                    results[n].get("recipient"), results[n].get("score"), results[n].get("threshold"))
+                   for n, (_, a, rec, attack) in sorted(truth.items()) if n in results
+                   and (results[n]["verdict"], results[n].get("candidate_asset"), results[n].get("recipient"))
+                   != ("match", a, rec)]
+    (out / "summary.json").write_text(json.dumps(s, indent=1, default=str))
+    tot = Counter()
+    for attack, c in sorted(s["per_attack"].items()):
+        tot.update(c)
+        print(f"{attack}: {dict(c)}")
+    print(f"all: {dict(tot)}; failed {len(s['failed'])}; exit status {status}; {wall:.0f} s on 2 workers; "
+          f"worker seconds per suspect: " + ", ".join(f"{k} {v / max(len(results), 1):.1f}"
+                                                      for k, v in s["stage_seconds"].items()))
+    for m in s["misses"]:
+        print("missed:", *m)
+
+
+def _triage_one(args):
+    from pipeline.orchestrate.scan import triage
+
+    return triage(*args)
+
+
+def candidates_bench():
+    """The scan's candidate search alone for every suspect on disk, against the candidates its scan recorded.
+
+    Needs ``bench/results/leaks`` from a run of :func:`leaks_bench`.  Each
+    suspect is ranked as the scan ranks it (``triage``, with the index of
+    the current format, built if missing) on 2 spawned processes, and its
+    candidates taken as the scan takes them.  Writes
+    ``bench/results/leaks/candidates.json`` and prints, per attack, how
+    often the leaked asset is a candidate now and was in the recorded scan,
+    and the negatives' candidate counts (their asset checks).
+    """
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    from pipeline.orchestrate.scan import _build_index, _candidates, _reference, read_scan
+
+    work = ROOT / "bench" / "results" / "leaks"
+    truth = json.loads((work / "truth.json").read_text())
+    cfg = _config(work, work / "manifests", work / "marked", "bench")
+    *_, descriptors, cat_version, _, paths = _reference(cfg, SECRET)
+    index_path = _build_index(work / "scan", cat_version, paths)
+    recorded = {Path(r["suspect_path"]).stem: r for r in sorted(read_scan(work / "scan"), key=lambda r: r["scanned_at"])}
+    names = sorted(n for n in truth if (work / "suspects" / f"{n}.ply").exists())
+    t0 = time.perf_counter()
+    with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn")) as pool:
+        infos = list(pool.map(_triage_one, [(str(work / "suspects" / f"{n}.ply"), descriptors, index_path)
+                                            for n in names]))
+    wall = time.perf_counter() - t0
+    rows, view = [], set(descriptors)
+    for name, info in zip(names, infos):
+        kind, asset, _, attack = truth[name]
+        picked = _candidates(info, view, cfg["scan"]["top_k"], cfg["scan"]["shape_margin"])
+        old = recorded.get(name)
+        rows.append({"suspect": name, "kind": kind, "asset": asset, "attack": attack, "candidates": picked,
+                     "shape_rank": info["ranking"].index(asset) if asset in info["ranking"] else None,
+                     "vote_rank": info["index_ranking"].index(asset) if asset in info["index_ranking"] else None,
+                     "recorded": None if old is None else list(old.get("candidates") or []),
+                     "recorded_verdict": None if old is None else old["verdict"], "seconds": info["seconds"],
+                     "ranking": info["ranking"], "distances": info["distances"],
+                     "index_ranking": info["index_ranking"]})
+    (work / "candidates.json").write_text(json.dumps(rows, indent=1))
+    print(f"{len(rows)} suspects ranked in {wall:.0f} s on 2 processes "
+          f"({np.mean([r['seconds'] for r in rows]):.1f} s each)")
+    for attack in sorted({r["attack"] for r in rows if r["kind"] == "leak"}):
+        sel = [r for r in rows if r["kind"] == "leak" and r["attack"] == attack]
+        was = [r for r in sel if r["recorded"] is not None]
+        # an exact re-save is a match with no candidates: its asset counts as found
+        old = sum(r["asset"] in r["recorded"] or (not r["recorded"] and r["recorded_verdict"] == "match")
+                  for r in was)
+        now = [r for r in sel if r["asset"] in r["candidates"]]
+        print(f"{attack}: {len(sel)} leaks, asset a candidate {len(now)}; recorded scan {old} of {len(was)}; "
+              f"missed now: {[(r['suspect'], r['asset'], r['shape_rank'], r['vote_rank']) for r in sel if r not in now]}")
+    neg = [r for r in rows if r["kind"] != "leak"]
+    if neg:
+        print(f"negatives: {len(neg)}, asset checks {sum(len(r['candidates']) for r in neg)} "
+              f"(recorded scan {sum(len(r['recorded'] or []) for r in neg if r['recorded'] is not None)})")
 
 
 def _read_catalogue(work):

@@ -1,4 +1,4 @@
-"""pointmark benchmarks: ``make bench`` (or ``python bench/run.py [spectral] [catalog] [scan] [fingerprint] [issue] [cli] [leaks] [leaks-resample] [leaks-resample-check] [tile]``).
+"""pointmark benchmarks: ``make bench`` (or ``python bench/run.py [spectral] [catalog] [scan] [fingerprint] [issue] [cli] [leaks] [leaks-resample] [leaks-resample-check] [leaks-trim] [leaks-parts] [leaks-rescan] [leaks-candidates] [tile]``).
 
 Every figure is a ratio of two timings taken side by side in this one run,
 since shared machines are noisy; each timing is the best of a few repeats.
@@ -301,20 +301,24 @@ def leaks_bench():
     run()
 
 
-def resample_bench(check=False):
-    """The leak benchmark's resampled leaks drawn again and scanned, or with ``check`` compared (see bench/leaks.py)."""
-    sys.path.insert(0, str(ROOT / "bench"))
-    from leaks import resample_bench as run
+def _leaks(name, doc, **kwargs):
+    """A bench entry that runs ``bench/leaks.py``'s ``name`` on an issued leak benchmark."""
+    def run():
+        sys.path.insert(0, str(ROOT / "bench"))
+        import leaks
 
-    run(check=check)
+        getattr(leaks, name)(**kwargs)
+
+    run.__doc__ = doc
+    return run
 
 
-def trim_bench():
-    """The whole-copy leaks against their true asset, fit trimmed and not (a few minutes): see bench/leaks.py."""
-    sys.path.insert(0, str(ROOT / "bench"))
-    from leaks import trim_bench as run
-
-    run()
+resample_bench = _leaks("resample_bench", "The leak benchmark's resampled leaks drawn again and scanned.")
+resample_check = _leaks("resample_bench", "The resampled leaks drawn again and compared with the files.", check=True)
+trim_bench = _leaks("trim_bench", "The whole-copy leaks against their true asset, fit trimmed and not (~22 min).")
+parts_bench = _leaks("parts_bench", "The part and scene leaks drawn again where their files are missing.")
+rescan_bench = _leaks("rescan_bench", "Every leak scanned afresh in one run (~1.5 h on 2 cores).")
+candidates_bench = _leaks("candidates_bench", "The candidate search alone for every suspect (~15 min).")
 
 
 def tile_bench():
@@ -327,8 +331,9 @@ def tile_bench():
 
 BENCHES = {"spectral": spectral_bench, "catalog": catalog_bench, "scan": scan_bench,
            "fingerprint": fingerprint_bench, "issue": issue_bench, "cli": cli_bench, "leaks": leaks_bench,
-           "tile": tile_bench, "leaks-resample": resample_bench, "leaks-resample-check": lambda: resample_bench(check=True),
-           "leaks-trim": trim_bench}
+           "tile": tile_bench, "leaks-resample": resample_bench, "leaks-resample-check": resample_check,
+           "leaks-trim": trim_bench, "leaks-parts": parts_bench, "leaks-rescan": rescan_bench,
+           "leaks-candidates": candidates_bench}
 DEFAULT = ["spectral", "catalog", "scan", "fingerprint", "issue", "cli"]   # the others run when named
 
 

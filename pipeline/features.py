@@ -33,7 +33,7 @@ from .kernels.resampling import nearest_spacing
 __all__ = [
     "fpfh", "voxel_for", "match", "register_global", "GlobalResult",
     "FeatureIndex", "InvertedFile", "build_index", "nearest_exact", "geometry_hash", "harmonic", "best_overlap", "overlap_of", "dense_part", "median_spacing",
-    "suspect_views",
+    "suspect_views", "dense_view",
 ]
 
 NORMAL_RADIUS = 2.0     # voxels
@@ -579,9 +579,10 @@ class FeatureIndex:
         """Per asset, the least D2 distance between any view of the suspect and any of the asset.
 
         The suspect's views (:func:`suspect_views`) are its points, its dense
-        part and its separate objects; an asset's are it whole and cut.  So
-        a copy with outliers, an asset among other objects and a crop are
-        each compared with what they derive from.
+        part and its separate objects; an asset's are it whole, cut, and its
+        own dense view.  So a copy with outliers (of an unevenly sampled scan
+        too), an asset among other objects and a crop are each compared with
+        what they derive from.
 
         Returns
         -------
@@ -680,7 +681,9 @@ def build_index(clouds, *, ivf=None):
         owner.append(np.full(len(f), i, dtype=np.int32))
         hashes.append(geometry_hash(points))
         centred = np.asarray(points, dtype=np.float64) - np.mean(points, axis=0)
-        shapes.append(np.vstack([d2_descriptor(centred), cut_descriptors(centred)]))
+        dense = dense_view(centred)
+        shapes.append(np.vstack([d2_descriptor(centred), cut_descriptors(centred),
+                                 d2_descriptor(dense - dense.mean(axis=0))]))
     index = FeatureIndex(keys, np.concatenate(feats).astype(np.float32), np.concatenate(owner), hashes,
                          shapes=np.concatenate(shapes),
                          shape_owner=np.concatenate([np.full(len(v), i, dtype=np.int32)
@@ -693,6 +696,23 @@ def build_index(clouds, *, ivf=None):
 
 MAX_VIEW_PARTS = 6       # separate objects of a suspect described, the largest first
 VIEW_DENSE = 2.0         # outlier cut of the dense view, in median k-th neighbour distances
+
+
+def dense_view(points):
+    """:func:`dense_part` twice at ``VIEW_DENSE``: a cloud without its sparse outliers.
+
+    On a scan sampled unevenly it also drops the sparsest few per cent of
+    the surface, so each asset is described by its own dense view too.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+
+    Returns
+    -------
+    (m, 3) float
+    """
+    return dense_part(dense_part(points, factor=VIEW_DENSE), factor=VIEW_DENSE)
 
 
 def suspect_views(points):
@@ -713,7 +733,7 @@ def suspect_views(points):
     list of (n_i, 3) float
     """
     points = np.asarray(points, dtype=np.float64)
-    dense = dense_part(dense_part(points, factor=VIEW_DENSE), factor=VIEW_DENSE)
+    dense = dense_view(points)
     views = [points, dense] if len(dense) < len(points) else [points]
     if len(dense) >= 400:
         parts = registration.separate_objects(dense, float(np.median(nearest_spacing(dense))),

@@ -143,7 +143,7 @@ def _candidates(info, view, top_k, margin=1.6):
     return list(dict.fromkeys(pick))
 
 
-INDEX_FORMAT = "v3"   # v2: large indexes carry inverted-file cells; v3: whole and cut shape views
+INDEX_FORMAT = "v4"   # v2: inverted-file cells; v3: whole and cut shape views; v4: and the dense view
 
 
 def _build_index(out, cat_version, catalogue_paths):
