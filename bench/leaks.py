@@ -88,7 +88,7 @@ def _config(work, manifests, out, key_id):
         f"catalog.source={work / 'catalog.parquet'}", f"recipients=[{', '.join(RECIPIENTS)}]", f"key.id={key_id}",
         f"output.dir={out}", f"output.manifests={manifests}", f"output.bases={work / 'bases'}", "cluster_size=2400",
         f"scan.suspects={work / 'suspects'}", f"scan.catalogue={work / 'catalog.parquet'}",
-        f"scan.manifests={work / 'manifests'}", f"scan.out={work / 'scan'}", "scan.top_k=5",
+        f"scan.manifests={work / 'manifests'}", f"scan.out={work / 'scan'}",
         "dask.progress=none", "dask.n_workers=2"])
 
 
@@ -102,6 +102,35 @@ def _chain(text, n):
         else:
             steps.append(surface.parse_attack(part))
     return steps + [("shuffle", None)]
+
+
+def _redraw(work, name, asset, recipient, attack):
+    """Leak ``name`` drawn again from its issued copy with seed ``[2026, k]`` (k its number).
+
+    Returns
+    -------
+    drawn : (m, 3) float
+    points : (n, 3) float, the issued copy
+    """
+    from pipeline import surface
+    from pipeline.io.pointcloud import read_points
+
+    points = read_points(work / "marked" / recipient / f"{asset}.ply").points
+    rng = np.random.default_rng([2026, int(name.split("-")[1])])
+    return surface.apply_chain(points, _chain(attack, len(points)), rng), points
+
+
+def _results(folder, key="name"):
+    """A scan's rows by suspect file name (or ``key="sha"``: by its sha256), the latest scan of each kept."""
+    from pipeline.orchestrate.scan import read_scan
+
+    rows = sorted(read_scan(folder), key=lambda r: r["scanned_at"])
+    return {(Path(r["suspect_path"]).stem if key == "name" else r["suspect_sha256"]): r for r in rows}
+
+
+def _found(r):
+    """Whether a scan row had the leaked asset to check: among its candidates, or an exact re-save."""
+    return (r["verdict"] == "match" and not r.get("candidates")), list(r.get("candidates") or [])
 
 
 def write_suspects(work, rows, other_rows):
@@ -196,7 +225,7 @@ def leaks_bench(resume=None):
     status = run_scan(cfg, SECRET, force=not resume)
     wall = time.perf_counter() - t0
     # rows keyed by file name: an interrupted run may have scanned a suspect from another folder
-    results = {Path(r["suspect_path"]).stem: r for r in sorted(read_scan(work / "scan"), key=lambda r: r["scanned_at"])}
+    results = _results(work / "scan")
     summary = _summarise(truth, results, wall, status, len(catalogue), t_issue)
     summary["scanned_this_run"] = len(read_scan(work / "scan")) - before
     summary["growth"] = growth(work, catalogue, truth)
@@ -213,7 +242,6 @@ def resample_bench(check=False):
     """
     from scipy.spatial import cKDTree
 
-    from pipeline import surface
     from pipeline.io.pointcloud import read_points, write_array
     from pipeline.orchestrate.scan import run_scan
 
@@ -222,9 +250,7 @@ def resample_bench(check=False):
     for name, (_, asset, recipient, attack) in truth.items():
         if attack != "resample:half":
             continue
-        points = read_points(work / "marked" / recipient / f"{asset}.ply").points
-        drawn = surface.apply_chain(points, _chain(attack, len(points)),
-                                    np.random.default_rng([2026, int(name.split("-")[1])]))
+        drawn, points = _redraw(work, name, asset, recipient, attack)
         if check:
             d, _ = cKDTree(read_points(work / "suspects" / f"{name}.ply").points).query(drawn)
             print(f"{name} {asset}: {np.mean(d < 1e-5 * np.ptp(points, axis=0).max()):.4f} of the points again")
@@ -289,8 +315,7 @@ def parts_bench():
     is drawn from its issued copy with seed ``[2026, k]`` (as
     :func:`resample_bench` draws); a leak whose file exists is kept.
     """
-    from pipeline import surface
-    from pipeline.io.pointcloud import read_points, write_array
+    from pipeline.io.pointcloud import write_array
 
     work = ROOT / "bench" / "results" / "leaks"
     truth = json.loads((work / "truth.json").read_text())
@@ -298,9 +323,7 @@ def parts_bench():
     for name, (_, asset, recipient, attack) in truth.items():
         if attack not in PART_ATTACKS or (work / "suspects" / f"{name}.ply").exists():
             continue
-        points = read_points(work / "marked" / recipient / f"{asset}.ply").points
-        write_array(work / "suspects", name, surface.apply_chain(
-            points, _chain(attack, len(points)), np.random.default_rng([2026, int(name.split("-")[1])])), "ply")
+        write_array(work / "suspects", name, _redraw(work, name, asset, recipient, attack)[0], "ply")
         drawn += 1
     print(f"{drawn} leaks drawn into {work / 'suspects'}")
 
@@ -310,25 +333,31 @@ def rescan_bench():
 
     Needs ``bench/results/leaks`` from a run of :func:`leaks_bench` (and
     :func:`parts_bench` where part leaks are missing).  The leaks are copied
-    into ``rescan/suspects``; an interrupted run resumes.  Negatives are not
-    scanned.  Writes ``rescan/summary.json`` and prints each attack's counts.
+    into ``rescan/suspects``; earlier results there are removed first unless
+    ``POINTMARK_BENCH_RESUME=1`` resumes an interrupted run.  Negatives are
+    not scanned.  Writes ``rescan/summary.json`` and prints each attack's counts.
     """
-    from pipeline.orchestrate.scan import read_scan, run_scan
+    import filecmp
+
+    from pipeline.orchestrate.scan import run_scan
 
     work = ROOT / "bench" / "results" / "leaks"
     out = work / "rescan"
     truth = {n: tuple(v) for n, v in json.loads((work / "truth.json").read_text()).items()
              if v[0] == "leak" and (work / "suspects" / f"{n}.ply").exists()}
+    if os.environ.get("POINTMARK_BENCH_RESUME") != "1":
+        shutil.rmtree(out / "scan", ignore_errors=True)
     (out / "suspects").mkdir(parents=True, exist_ok=True)
     for name in truth:
-        if not (out / "suspects" / f"{name}.ply").exists():
-            shutil.copy2(work / "suspects" / f"{name}.ply", out / "suspects")
+        src, dst = work / "suspects" / f"{name}.ply", out / "suspects" / f"{name}.ply"
+        if not dst.exists() or not filecmp.cmp(src, dst, shallow=False):
+            shutil.copy2(src, dst)
     cfg = _config(work, work / "manifests", work / "marked", "bench")
     cfg["scan"]["suspects"], cfg["scan"]["out"] = str(out / "suspects"), str(out / "scan")
     t0 = time.perf_counter()
     status = run_scan(cfg, SECRET)
     wall = time.perf_counter() - t0
-    results = {Path(r["suspect_path"]).stem: r for r in sorted(read_scan(out / "scan"), key=lambda r: r["scanned_at"])}
+    results = _results(out / "scan")
     s = _summarise(truth, results, wall, status, len(_read_catalogue(work)), float("nan"))
     s["misses"] = [(n, a, attack, results[n]["verdict"], results[n].get("candidate_asset"),
                     results[n].get("recipient"), results[n].get("score"), results[n].get("threshold"))
@@ -367,14 +396,14 @@ def candidates_bench():
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
-    from pipeline.orchestrate.scan import _build_index, _candidates, _reference, read_scan
+    from pipeline.orchestrate.scan import _build_index, _candidates, _reference
 
     work = ROOT / "bench" / "results" / "leaks"
     truth = json.loads((work / "truth.json").read_text())
     cfg = _config(work, work / "manifests", work / "marked", "bench")
     *_, descriptors, cat_version, _, paths = _reference(cfg, SECRET)
     index_path = _build_index(work / "scan", cat_version, paths)
-    recorded = {Path(r["suspect_path"]).stem: r for r in sorted(read_scan(work / "scan"), key=lambda r: r["scanned_at"])}
+    recorded = _results(work / "scan", key="sha")     # by content: a leak drawn again was not scanned there
     names = sorted(n for n in truth if (work / "suspects" / f"{n}.ply").exists())
     t0 = time.perf_counter()
     with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn")) as pool:
@@ -385,12 +414,13 @@ def candidates_bench():
     for name, info in zip(names, infos):
         kind, asset, _, attack = truth[name]
         picked = _candidates(info, view, cfg["scan"]["top_k"], cfg["scan"]["shape_margin"])
-        old = recorded.get(name)
+        old = recorded.get(info["sha256"])
+        exact, checked = _found(old) if old is not None else (False, [])
         rows.append({"suspect": name, "kind": kind, "asset": asset, "attack": attack, "candidates": picked,
                      "shape_rank": info["ranking"].index(asset) if asset in info["ranking"] else None,
                      "vote_rank": info["index_ranking"].index(asset) if asset in info["index_ranking"] else None,
-                     "recorded": None if old is None else list(old.get("candidates") or []),
-                     "recorded_verdict": None if old is None else old["verdict"], "seconds": info["seconds"],
+                     "recorded": None if old is None else bool(exact or asset in checked),
+                     "recorded_checks": None if old is None else len(checked), "seconds": info["seconds"],
                      "ranking": info["ranking"], "distances": info["distances"],
                      "index_ranking": info["index_ranking"]})
     (work / "candidates.json").write_text(json.dumps(rows, indent=1))
@@ -399,16 +429,20 @@ def candidates_bench():
     for attack in sorted({r["attack"] for r in rows if r["kind"] == "leak"}):
         sel = [r for r in rows if r["kind"] == "leak" and r["attack"] == attack]
         was = [r for r in sel if r["recorded"] is not None]
-        # an exact re-save is a match with no candidates: its asset counts as found
-        old = sum(r["asset"] in r["recorded"] or (not r["recorded"] and r["recorded_verdict"] == "match")
-                  for r in was)
+        old = sum(r["recorded"] for r in was)
         now = [r for r in sel if r["asset"] in r["candidates"]]
         print(f"{attack}: {len(sel)} leaks, asset a candidate {len(now)}; recorded scan {old} of {len(was)}; "
               f"missed now: {[(r['suspect'], r['asset'], r['shape_rank'], r['vote_rank']) for r in sel if r not in now]}")
     neg = [r for r in rows if r["kind"] != "leak"]
     if neg:
         print(f"negatives: {len(neg)}, asset checks {sum(len(r['candidates']) for r in neg)} "
-              f"(recorded scan {sum(len(r['recorded'] or []) for r in neg if r['recorded'] is not None)})")
+              f"(recorded scan {sum(r['recorded_checks'] for r in neg if r['recorded_checks'] is not None)})")
+    leaks = [r for r in rows if r["kind"] == "leak"]
+    for k in (3, 4, 5, 6):      # what scan.top_k buys: leaks with their asset to check, checks per innocent
+        found = sum(r["asset"] in _candidates(r, view, k, cfg["scan"]["shape_margin"]) for r in leaks)
+        checks = np.mean([len(_candidates(r, view, k, cfg["scan"]["shape_margin"])) for r in neg]) if neg else 0.0
+        print(f"top_k {k}: leaked asset a candidate for {found} of {len(leaks)}; {checks:.2f} asset checks "
+              f"per negative")
 
 
 def _read_catalogue(work):
@@ -455,8 +489,8 @@ def _summarise(truth, results, wall, status, n_assets, t_issue):
         if kind == "leak":
             cell = per_attack.setdefault(attack, Counter())
             cell["suspects"] += 1
-            exact = r["verdict"] == "match" and not r.get("candidates")
-            cell["candidate"] += bool(exact or asset in (r.get("candidates") or []))
+            exact, picked = _found(r)
+            cell["candidate"] += bool(exact or asset in picked)
             cell["right"] += r["verdict"] == "match" and (r["candidate_asset"], r["recipient"]) == (asset, recipient)
             cell["wrong"] += r["verdict"] == "match" and (r["candidate_asset"], r["recipient"]) != (asset, recipient)
             cell["inconclusive"] += r["verdict"] == "inconclusive"

@@ -540,8 +540,9 @@ class FeatureIndex:
         clutter, junk points): "hub" assets whose descriptors resemble
         anything are discounted by it.
     shapes : (V, D2_BINS) float, optional
-        Shape distributions (D2) of every asset, whole and cut
-        (:func:`~pipeline.kernels.descriptor.cut_descriptors`).
+        Shape distributions (D2) of every asset, whole, cut
+        (:func:`~pipeline.kernels.descriptor.cut_descriptors`) and its
+        dense view (:func:`dense_view`).
     shape_owner : (V,) int32, optional
         Index into ``keys`` of each row of ``shapes``.
     """

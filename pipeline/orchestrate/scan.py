@@ -5,7 +5,7 @@ match; (2) an exact sha256 match with an issued copy attributes at once;
 (3) otherwise the top-K catalogue assets by local-descriptor votes
 (part-to-whole: crops, scenes) and the top-K by shape distribution (the
 suspect whole, without outliers and object by object, against each asset
-whole and cut) are checked, alternately best-ranked first and until the
+whole, cut and without outliers) are checked, alternately best-ranked first and until the
 first match, through the one attribution
 path (:mod:`pipeline.orchestrate.attribute`), each against every recipient
 issued under the keys held; the verdict is corrected for every recipient of
@@ -102,8 +102,8 @@ def triage(suspect_path, descriptors, index_path):
 
     ``ranking``: by shape distribution (D2), the suspect's views (it whole,
     without outliers, each separate object) against each asset's (whole,
-    and cut as a crop cuts it), right for whole copies, scenes, outliers and
-    crops; ``index_ranking``: by votes of local descriptors (FPFH) over the
+    cut as a crop cuts it, and without outliers), right for whole copies,
+    scenes, outliers and crops; ``index_ranking``: by votes of local descriptors (FPFH) over the
     catalogue index, right for parts of an asset and assets inside a scene.
     """
     t0 = time.perf_counter()
@@ -447,7 +447,12 @@ def _scope(issued, prev, state, out):
 
 
 def _record(out, versions, info, verdict, **columns):
-    """Write the suspect's one result row (a failed suspect keeps one file, overwritten on retry)."""
+    """Write the suspect's result row.
+
+    A failed suspect keeps one file, overwritten on retry; a finished result
+    never overwrites another (a ``--force`` rescan against the same versions
+    adds a file named by its time).
+    """
     now = datetime.now(timezone.utc).replace(microsecond=0)
     sha = info.get("sha256") or hashlib.sha256(info["suspect_path"].encode()).hexdigest()
     row = {"suspect_path": info.get("path", info.get("suspect_path")), "suspect_sha256": info.get("sha256"),
@@ -455,7 +460,12 @@ def _record(out, versions, info, verdict, **columns):
            "seconds_candidates": info.get("seconds"), "verdict": verdict,
            "status": "failed" if verdict == "failed" else "ok", "ledger_version": versions[0],
            "catalogue_version": versions[1], "tool_version": __version__, "scanned_at": now, **columns}
-    write_rows(_result_path(out, sha, versions, failed=verdict == "failed"), [row], SCAN_SCHEMA)
+    path = _result_path(out, sha, versions, failed=verdict == "failed")
+    stamp, n = now.strftime("%Y%m%dT%H%M%S"), 0
+    while verdict != "failed" and path.exists():
+        n += 1
+        path = path.with_name(f"{path.name.removesuffix('.parquet').split('@')[0]}@{stamp}-{n}.parquet")
+    write_rows(path, [row], SCAN_SCHEMA)
 
 
 def read_scan(folder):

@@ -17,10 +17,10 @@ from tests.orchestrate.test_run import SECRET, _run, make_catalogue, write_confi
 pytestmark = pytest.mark.slow
 
 
-def _scan(tmp, secret=SECRET):
+def _scan(tmp, secret=SECRET, *flags):
     env = dict(os.environ, PYTHONPATH=str(ROOT), POINTMARK_SECRET=secret)
-    return subprocess.run([sys.executable, "-m", "pipeline.cli", "scan", str(tmp / "scan.yaml")], cwd=tmp, env=env,
-                          capture_output=True, text=True, timeout=900)
+    return subprocess.run([sys.executable, "-m", "pipeline.cli", "scan", str(tmp / "scan.yaml"), *flags], cwd=tmp,
+                          env=env, capture_output=True, text=True, timeout=900)
 
 
 def _latest(tmp):
@@ -61,6 +61,17 @@ def test_a_check_that_raises_is_failed_exit_3_and_retried_with_one_result_file(w
     res = _scan(tmp)
     assert res.returncode == 1, res.stdout + res.stderr      # retried, and found
     assert _latest(tmp)["found.ply"]["verdict"] == "match" and _latest(tmp)["found.ply"]["recipient"] == "bob"
+
+
+def test_a_forced_rescan_adds_a_record_and_keeps_the_first(world):
+    tmp, _ = world
+    assert _scan(tmp).returncode == 1
+    first = read_scan(tmp / "scan")
+    assert _scan(tmp, SECRET, "--force").returncode == 1
+    rows = read_scan(tmp / "scan")
+    assert len(rows) == 2 and first[0] in rows
+    assert _latest(tmp)["found.ply"]["scanned_at"] > first[0]["scanned_at"]
+    assert "1 already scanned" in _scan(tmp).stdout       # the latest record counts
 
 
 def test_a_rescan_checks_old_suspects_only_against_new_copies(world):
