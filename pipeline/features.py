@@ -28,12 +28,12 @@ from scipy.spatial import cKDTree
 
 from .kernels import registration
 from .kernels.descriptor import cut_descriptors, d2_descriptor, descriptor_distance
-from .kernels.resampling import nearest_spacing
+from .kernels.resampling import estimate_normals, nearest_spacing
 
 __all__ = [
     "fpfh", "voxel_for", "match", "register_global", "GlobalResult",
     "FeatureIndex", "InvertedFile", "build_index", "nearest_exact", "geometry_hash", "harmonic", "best_overlap", "overlap_of", "dense_part", "median_spacing",
-    "suspect_views", "dense_view",
+    "suspect_views", "dense_view", "polish",
 ]
 
 NORMAL_RADIUS = 2.0     # voxels
@@ -190,6 +190,14 @@ class _Original:
         self.diag = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
         rng = np.random.default_rng(0)
         self.sample = points[rng.choice(len(points), min(len(points), 4000), replace=False)]
+        self._normals = None
+
+    @property
+    def normals(self):
+        """(m, 3) unit normals of the original, for point-to-plane ICP (computed when first asked)."""
+        if self._normals is None:
+            self._normals = estimate_normals(self.points)
+        return self._normals
 
 
 _CACHE: dict = {}
@@ -337,6 +345,8 @@ def register_search(suspect, original, *, spacing, icp_points=6000, rng=0):
 
     def refined(points, start, iterations, sample):
         fine = registration.refine_part(points, ref.tree, original, start, spacing=spacing, iterations=iterations)
+        fine = registration.refine_plane(points, ref.tree, original, ref.normals, fine, spacing=spacing,
+                                         iterations=PLANE_ITERATIONS)
         f, c, r = registration.overlap(registration.apply(fine, points), ref.tree, sample, 3.0 * spacing)
         return (harmonic(f, c), r), fine
 
@@ -346,8 +356,35 @@ def register_search(suspect, original, *, spacing, icp_points=6000, rng=0):
     quick.sort(key=lambda q: (q[0][0] < top - OVERLAP_TIE, q[0][1]))      # best_overlap's order
     fits = [refined(sub, q[1], 60, ref.sample) for q in quick[:SEARCH_REFINED]]
     best = fits[best_overlap([rank for rank, _ in fits])][1]
-    return registration.refine_part(suspect, ref.tree, original, best, spacing=spacing, widths=(3.0,),
-                                    iterations=FINAL_ITERATIONS)
+    return polish(suspect, original, registration.refine_part(suspect, ref.tree, original, best, spacing=spacing,
+                                                              widths=(3.0,), iterations=FINAL_ITERATIONS),
+                  spacing=spacing)
+
+
+PLANE_ITERATIONS = 20   # most point-to-plane ICP steps per cut
+
+
+def polish(suspect, original, transform, *, spacing):
+    """A part's registration after point-to-plane ICP (:func:`registration.refine_plane`), if that ranks better.
+
+    Both are ranked by :func:`best_overlap`; on a tie the given one stays.
+
+    Parameters
+    ----------
+    suspect : (n, 3) float
+    original : (m, 3) float
+    transform : registration.Similarity
+    spacing : float
+
+    Returns
+    -------
+    registration.Similarity
+    """
+    ref = _original(original, spacing, 4000)
+    fine = registration.refine_plane(suspect, ref.tree, original, ref.normals, transform, spacing=spacing,
+                                     iterations=PLANE_ITERATIONS)
+    tried = [transform, fine]
+    return tried[best_overlap([overlap_of(t, suspect, original, spacing) for t in tried])]
 
 
 SCALES = (1.0, 2**0.5, 2**-0.5, 2.0, 0.5, 2**1.5, 2**-1.5)

@@ -756,14 +756,15 @@ def _register(suspect, reference, spacing, method, tree):
     ranked = [features.overlap_of(t, suspect, reference, spacing) for t in tried]
     best = tried[features.best_overlap(ranked)]
     if not features.needs_search(best, suspect, reference, spacing):
-        return best
+        # point-to-point ICP slides slowly along smooth surfaces: finish on the tangent planes
+        return features.polish(suspect, reference, best, spacing=spacing)
     # a part laid loosely on a smooth shape, where features mislead: search every rotation
     searched = features.register_search(suspect, reference, spacing=spacing)
     if searched is None:
-        return best
+        return features.polish(suspect, reference, best, spacing=spacing)
     tried.append(searched)
     ranked.append(features.overlap_of(searched, suspect, reference, spacing))
-    return tried[features.best_overlap(ranked)]
+    return features.polish(suspect, reference, tried[features.best_overlap(ranked)], spacing=spacing)
 
 
 POLISH_WIDTHS = (3.0, 1.5)   # fixed ICP cuts (spacings) polishing a whole copy's registration

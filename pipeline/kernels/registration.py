@@ -33,7 +33,7 @@ from scipy.spatial import cKDTree
 __all__ = [
     "Similarity", "apply", "umeyama", "principal_frame", "register_covariance",
     "icp_similarity", "register_robust", "umeyama_batch", "ransac_similarity", "overlap",
-    "refine_part", "rotation_search", "connected_parts", "separate_objects", "shape_signature",
+    "refine_part", "refine_plane", "rotation_search", "connected_parts", "separate_objects", "shape_signature",
 ]
 
 
@@ -509,6 +509,76 @@ def refine_part(suspect, tree, original, start, *, spacing, iterations=30, width
             if previous - err < 1e-4 * spacing:
                 break
             previous = err
+    dist, _ = tree.query(apply(current, suspect), distance_upper_bound=3.0 * spacing)
+    inside = np.isfinite(dist)
+    fitness = float(inside.mean())
+    residual = float(np.sqrt((dist[inside] ** 2).mean())) if inside.any() else float("inf")
+    return Similarity(current.rotation, current.scale, current.translation, fitness, residual)
+
+
+def _rotvec_matrix(w):
+    """Rotation matrix of the rotation vector ``w`` (3,) (Rodrigues)."""
+    angle = float(np.linalg.norm(w))
+    if angle < 1e-15:
+        return np.eye(3)
+    k = np.asarray(w) / angle
+    cross = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(angle) * cross + (1.0 - np.cos(angle)) * cross @ cross
+
+
+def refine_plane(suspect, tree, original, normals, start, *, spacing, iterations=20, widths=(3.0, 1.5)):
+    """Trimmed point-to-plane ICP with scale (Chen and Medioni 1992, linearised, with a scale term).
+
+    Point-to-point ICP (:func:`refine_part`) slides slowly along a smooth
+    surface: on a crop of a torus with low bumps it stops 3 to 60 spacings
+    from the true pose, where the mark cannot be read.  Minimising the
+    distance to the original's tangent planes moves along the surface in a
+    few steps.  Each step solves for a small scale change, rotation vector
+    and translation about the matched points' centroid; pairs are kept
+    within a fixed cut narrowing from ``widths[0]`` to ``widths[-1]``
+    spacings, as in :func:`refine_part`.  Directions the planes do not
+    constrain (sliding on a plane) get the least-norm update: they stay.
+
+    Parameters
+    ----------
+    suspect : (n, 3) float
+    tree : cKDTree over ``original``
+    original : (m, 3) float
+    normals : (m, 3) float
+        Unit normals of the original (their sign does not matter).
+    start : Similarity
+    spacing : float
+        Median nearest-neighbour distance of the original.
+    iterations : int
+        Most steps per cut.
+    widths : sequence of float
+        Cuts, in spacings.
+
+    Returns
+    -------
+    Similarity
+        ``fitness`` and ``residual`` as :func:`refine_part` gives them.
+    """
+    current = start
+    for width in widths:
+        for _ in range(iterations):
+            moved = apply(current, suspect)
+            dist, idx = tree.query(moved, distance_upper_bound=width * spacing)
+            keep = np.isfinite(dist)
+            if keep.sum() < 7:
+                break
+            x, n = moved[keep], normals[idx[keep]]
+            centre = x.mean(axis=0)
+            xc = x - centre
+            design = np.column_stack([(xc * n).sum(axis=1), np.cross(xc, n), n])      # (k, 7)
+            misfit = ((original[idx[keep]] - x) * n).sum(axis=1)
+            step, *_ = np.linalg.lstsq(design, misfit, rcond=None)
+            turn = _rotvec_matrix(step[1:4])
+            scale = 1.0 + step[0]
+            current = _compose(Similarity(turn, scale, centre + step[4:] - scale * turn @ centre), current)
+            reach = abs(step[0]) + np.linalg.norm(step[1:4])
+            if reach * np.sqrt((xc ** 2).sum(axis=1).max()) + np.linalg.norm(step[4:]) < 1e-3 * spacing:
+                break
     dist, _ = tree.query(apply(current, suspect), distance_upper_bound=3.0 * spacing)
     inside = np.isfinite(dist)
     fitness = float(inside.mean())

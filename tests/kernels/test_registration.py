@@ -123,3 +123,33 @@ def test_rotation_search_finds_a_crop_of_a_smooth_shape_at_a_known_scale():
               for _, start in found]
     assert min(errors) < 0.01 * spacing
     assert np.median(errors) > 2.0 * spacing      # most poses are wrong: the search, not ICP, found it
+
+
+def _bumpy_torus(n, rng):
+    u, v = rng.uniform(0, 2 * np.pi, (2, n))
+    r = 0.3 * (1.0 + 0.05 * np.sin(3 * u) * np.cos(2 * v))      # low bumps: nearly symmetric about z
+    return np.column_stack([(1 + r * np.cos(v)) * np.cos(u), (1 + r * np.cos(v)) * np.sin(u), r * np.sin(v)])
+
+
+def test_plane_icp_finishes_a_crop_of_a_nearly_symmetric_shape_that_point_icp_leaves_off():
+    from scipy.spatial import cKDTree
+
+    from pipeline.kernels.registration import Similarity, refine_part, refine_plane
+    from pipeline.kernels.resampling import estimate_normals, nearest_spacing
+
+    rng = np.random.default_rng(3)
+    original = _bumpy_torus(8000, rng)
+    part = attacks.crop(original, 0.3, rng)
+    spacing = float(np.median(nearest_spacing(original)))
+    tree, normals = cKDTree(original), estimate_normals(original)
+    # part coordinates: a scaled copy; the start is 4 degrees about the axis and a little too large
+    suspect = part / 2.5
+    start = Similarity(attacks.rotation_matrix("z", 4.0), 2.5 * 1.01, np.zeros(3))
+
+    def err(t):
+        return np.median(np.linalg.norm(apply(t, suspect) - part, axis=1)) / spacing
+
+    assert err(start) > 3.0
+    assert err(refine_part(suspect, tree, original, start, spacing=spacing, widths=(3.0,), iterations=100)) > 1.0
+    fine = refine_plane(suspect, tree, original, normals, start, spacing=spacing)
+    assert err(fine) < 0.1 and abs(fine.scale / 2.5 - 1) < 2e-3 and fine.fitness > 0.99
