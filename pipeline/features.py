@@ -196,7 +196,7 @@ class _Original:
     def normals(self):
         """(m, 3) unit normals of the original, for point-to-plane ICP (computed when first asked)."""
         if self._normals is None:
-            self._normals = estimate_normals(self.points)
+            self._normals = estimate_normals(self.points, tree=self.tree)
         return self._normals
 
 

@@ -57,8 +57,12 @@ def nearest_spacing(points):
     return dist[np.asarray(inverse).reshape(-1), 1]
 
 
-def estimate_normals(points, k=16, at=None):
+def estimate_normals(points, k=16, at=None, *, tree=None, chunk=65536):
     """Unoriented normals by local principal component analysis.
+
+    Computed ``chunk`` points at a time, so peak memory stays near
+    ``chunk * k * 3`` floats however large the cloud (each point's normal
+    is the same as when computed all at once).
 
     Parameters
     ----------
@@ -68,18 +72,25 @@ def estimate_normals(points, k=16, at=None):
     at : (l,) int, optional
         Only the normals of these points (their neighbours are still taken
         from all of ``points``).
+    tree : cKDTree over ``points``, optional
+        Built here when not given.
+    chunk : int
 
     Returns
     -------
     (n, 3) or (l, 3) float, unit rows
     """
     k = min(k, len(points))
-    _, idx = cKDTree(points).query(points if at is None else points[at], k=k)
-    nbrs = points[idx]                                  # (n, k, 3)
-    centred = nbrs - nbrs.mean(axis=1, keepdims=True)
-    cov = np.einsum("nki,nkj->nij", centred, centred)   # (n, 3, 3)
-    _, vectors = np.linalg.eigh(cov)
-    return vectors[:, :, 0]                             # smallest-variance direction
+    tree = cKDTree(points) if tree is None else tree
+    queries = points if at is None else points[at]
+    out = np.empty((len(queries), 3))
+    for start in range(0, len(queries), chunk):
+        _, idx = tree.query(queries[start:start + chunk], k=k)
+        nbrs = points[idx]                                  # (c, k, 3)
+        centred = nbrs - nbrs.mean(axis=1, keepdims=True)
+        cov = np.einsum("nki,nkj->nij", centred, centred)   # (c, 3, 3)
+        out[start:start + chunk] = np.linalg.eigh(cov)[1][:, :, 0]   # smallest-variance direction
+    return out
 
 
 def snap_to_original(original, suspect):

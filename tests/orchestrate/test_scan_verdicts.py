@@ -48,6 +48,9 @@ def world(tmp_path):
 
 def test_a_check_that_raises_is_failed_exit_3_and_retried_with_one_result_file(world):
     tmp, _ = world
+    cfg = yaml.safe_load((tmp / "scan.yaml").read_text())
+    cfg["scan"]["top_k"] = 2      # the other candidate's check completes, as "no match": still failed
+    (tmp / "scan.yaml").write_text(yaml.safe_dump(cfg))
     original = tmp / "assets" / "asset-0.ply"
     hidden = tmp / "asset-0.ply.away"
     original.rename(hidden)                                  # the check cannot read the original
