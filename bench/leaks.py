@@ -328,6 +328,45 @@ def parts_bench():
     print(f"{drawn} leaks drawn into {work / 'suspects'}")
 
 
+POSE_LEAKS = ("leak-050", "leak-119", "leak-120", "leak-196", "leak-197", "leak-203", "leak-210", "leak-211")
+
+
+def poses_bench(names=POSE_LEAKS):
+    """How far the registration lays crop leaks from the pose of their known attack, in spacings of the original.
+
+    Each leak (its chain a crop first, as in :data:`PART_ATTACKS`) is drawn
+    again from its seed as :func:`_redraw` draws it, without the shuffle, so
+    the kept points of the issued copy are known; the true pose is their
+    Procrustes fit.  Registered by detection's own registration of the
+    checked-out tree (``watermark._register``, with the original's normals).
+    """
+    from scipy.spatial import cKDTree
+
+    from pipeline import surface, watermark
+    from pipeline.io.pointcloud import read_points
+    from pipeline.kernels import attacks, registration, resampling
+
+    work = ROOT / "bench" / "results" / "leaks"
+    truth = json.loads((work / "truth.json").read_text())
+    for name in names:
+        _, asset, recipient, attack = truth[name]
+        points = read_points(work / "marked" / recipient / f"{asset}.ply").points
+        original = read_points(work / "assets" / f"{asset}.ply").points
+        chain = _chain(attack, len(points))[:-1]                       # no shuffle: rows stay matched
+        rng = np.random.default_rng([2026, int(name.split("-")[1])])
+        normal, offset = attacks.crop_plane(points, chain[0][1], rng)
+        kept = points[points @ normal >= offset]
+        drawn = surface.apply_chain(kept, chain[1:], rng)
+        true = registration.umeyama(drawn, kept)
+        spacing = float(np.median(resampling.nearest_spacing(original)))
+        t0 = time.perf_counter()
+        found = watermark._register(drawn, original, spacing, "robust", cKDTree(original),
+                                    resampling.estimate_normals(original))
+        off = np.linalg.norm(registration.apply(found, drawn) - registration.apply(true, drawn), axis=1) / spacing
+        print(f"{name} {asset} {attack}: median {np.median(off):.2f}, most {off.max():.2f} spacings from the "
+              f"true pose; {time.perf_counter() - t0:.0f} s", flush=True)
+
+
 def rescan_bench():
     """Every leak of an issued benchmark scanned afresh in one run, today's config, into ``leaks/rescan``.
 

@@ -203,12 +203,14 @@ class _Original:
 _CACHE: dict = {}
 
 
-def _original(points, spacing, target):
+def _original(points, spacing, target, normals=None):
     key = (points.shape, hashlib.sha1(np.ascontiguousarray(points[:: max(1, len(points) // 1000)])).hexdigest(),
            round(spacing, 12), target)
     if key not in _CACHE:
         _CACHE.clear()
         _CACHE[key] = _Original(points, spacing, target)
+    if normals is not None and _CACHE[key]._normals is None:
+        _CACHE[key]._normals = normals
     return _CACHE[key]
 
 
@@ -226,6 +228,7 @@ def _good(result, good, spacing):
 
 
 FINAL_ITERATIONS = 300    # most ICP steps of the final refinement (it stops once converged)
+PLANE_ITERATIONS = 20     # most point-to-plane ICP steps per cut (:func:`polish`, the search's poses)
 PERTURBATIONS = (-30.0, -15.0, 15.0, 30.0)   # degrees, about each axis through the overlap's centre
 
 
@@ -313,7 +316,7 @@ SEARCH_POSES = 48      # coarse poses from the rotation search, each refined bri
 SEARCH_REFINED = 6     # of those, refined on the ICP subsample (the best on every point)
 
 
-def register_search(suspect, original, *, spacing, icp_points=6000, rng=0):
+def register_search(suspect, original, *, spacing, icp_points=6000, rng=0, normals=None):
     """Part-to-whole registration without features: :func:`registration.rotation_search` then ICP.
 
     The scale comes from the ratio of point spacings (a crop keeps its
@@ -330,12 +333,14 @@ def register_search(suspect, original, *, spacing, icp_points=6000, rng=0):
         Median nearest-neighbour distance of the original.
     icp_points : int
     rng : int
+    normals : (m, 3) float, optional
+        The original's normals, when the caller has them (else estimated once per original).
 
     Returns
     -------
     registration.Similarity, or None when the suspect's spacing gives no scale (coincident points)
     """
-    ref = _original(original, spacing, 4000)
+    ref = _original(original, spacing, 4000, normals)
     dense = dense_part(suspect)
     spread = median_spacing(dense)
     if not (np.isfinite(spread) and spread > 0.0):
@@ -358,13 +363,11 @@ def register_search(suspect, original, *, spacing, icp_points=6000, rng=0):
     best = fits[best_overlap([rank for rank, _ in fits])][1]
     return polish(suspect, original, registration.refine_part(suspect, ref.tree, original, best, spacing=spacing,
                                                               widths=(3.0,), iterations=FINAL_ITERATIONS),
-                  spacing=spacing)
+                  spacing=spacing, normals=normals)
 
 
-PLANE_ITERATIONS = 20   # most point-to-plane ICP steps per cut
 
-
-def polish(suspect, original, transform, *, spacing):
+def polish(suspect, original, transform, *, spacing, normals=None):
     """A part's registration after point-to-plane ICP (:func:`registration.refine_plane`), if that ranks better.
 
     Both are ranked by :func:`best_overlap`; on a tie the given one stays.
@@ -375,12 +378,14 @@ def polish(suspect, original, transform, *, spacing):
     original : (m, 3) float
     transform : registration.Similarity
     spacing : float
+    normals : (m, 3) float, optional
+        As for :func:`register_search`.
 
     Returns
     -------
     registration.Similarity
     """
-    ref = _original(original, spacing, 4000)
+    ref = _original(original, spacing, 4000, normals)
     fine = registration.refine_plane(suspect, ref.tree, original, ref.normals, transform, spacing=spacing,
                                      iterations=PLANE_ITERATIONS)
     tried = [transform, fine]

@@ -649,8 +649,10 @@ def estimate_differences(suspect, reference, specs, bases, detect_params, params
     """
     t0 = time.perf_counter()
     spacing = resampling.nearest_spacing(reference) if spacing is None else spacing
+    if normals is None and detect_params.correspondence != "paper":
+        normals = resampling.estimate_normals(reference)      # once, for the registration and the fit
     tree = cKDTree(reference)
-    transform = _register(suspect, reference, float(np.median(spacing)), detect_params.registration, tree)
+    transform = _register(suspect, reference, float(np.median(spacing)), detect_params.registration, tree, normals)
     aligned = registration.apply(transform, suspect)
     fitness, coverage, _ = registration.overlap(aligned, tree, _coverage_sample(reference),
                                                 3.0 * float(np.median(spacing)))
@@ -719,7 +721,7 @@ def _coverage_sample(reference):
     return reference[:: max(1, len(reference) // 4000)]
 
 
-def _register(suspect, reference, spacing, method, tree):
+def _register(suspect, reference, spacing, method, tree, normals=None):
     if method == "none":
         return registration.Similarity(np.eye(3), 1.0, np.zeros(3))
     if method == "paper":
@@ -755,16 +757,17 @@ def _register(suspect, reference, spacing, method, tree):
         tried = [robust, features.register_global(suspect, reference, spacing=spacing).transform]
     ranked = [features.overlap_of(t, suspect, reference, spacing) for t in tried]
     best = tried[features.best_overlap(ranked)]
-    if not features.needs_search(best, suspect, reference, spacing):
-        # point-to-point ICP slides slowly along smooth surfaces: finish on the tangent planes
-        return features.polish(suspect, reference, best, spacing=spacing)
-    # a part laid loosely on a smooth shape, where features mislead: search every rotation
-    searched = features.register_search(suspect, reference, spacing=spacing)
-    if searched is None:
-        return features.polish(suspect, reference, best, spacing=spacing)
-    tried.append(searched)
-    ranked.append(features.overlap_of(searched, suspect, reference, spacing))
-    return features.polish(suspect, reference, tried[features.best_overlap(ranked)], spacing=spacing)
+    if features.needs_search(best, suspect, reference, spacing):
+        # a part laid loosely on a smooth shape, where features mislead: search every rotation
+        searched = features.register_search(suspect, reference, spacing=spacing, normals=normals)
+        if searched is not None:
+            tried.append(searched)
+            ranked.append(features.overlap_of(searched, suspect, reference, spacing))
+            best = tried[features.best_overlap(ranked)]
+            if best is searched:
+                return searched          # it ends with the polish below
+    # point-to-point ICP slides slowly along smooth surfaces: finish on the tangent planes
+    return features.polish(suspect, reference, best, spacing=spacing, normals=normals)
 
 
 POLISH_WIDTHS = (3.0, 1.5)   # fixed ICP cuts (spacings) polishing a whole copy's registration
@@ -815,7 +818,6 @@ def _coefficient_differences(aligned, reference, specs, bases, detect_params, pa
         deltas = [e.T @ (resampled[s.members] - reference[s.members]) for s, e in zip(specs, bases)]
         support = [int(np.any(resampled[s.members] != reference[s.members], axis=1).sum()) for s in specs]
         return deltas, support
-    normals = resampling.estimate_normals(reference) if normals is None else normals
     return resampling.fit_spectral_displacement(
         reference, normals, aligned, [s.members for s in specs], bases,
         iterations=detect_params.iterations, ridge=detect_params.ridge,
