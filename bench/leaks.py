@@ -374,16 +374,59 @@ def rescan_bench():
     :func:`parts_bench` where part leaks are missing).  The leaks are copied
     into ``rescan/suspects``; earlier results there are removed first unless
     ``POINTMARK_BENCH_RESUME=1`` resumes an interrupted run.  Negatives are
-    not scanned.  Writes ``rescan/summary.json`` and prints each attack's counts.
+    not scanned (:func:`negatives_bench` scans them).  Writes
+    ``rescan/summary.json`` and prints each attack's counts.
     """
+    truth, results, s = _rescan("rescan", lambda kind: kind == "leak")
+    s["misses"] = [(n, a, attack, results[n]["verdict"], results[n].get("candidate_asset"),
+                    results[n].get("recipient"), results[n].get("score"), results[n].get("threshold"))
+                   for n, (_, a, rec, attack) in sorted(truth.items()) if n in results
+                   and (results[n]["verdict"], results[n].get("candidate_asset"), results[n].get("recipient"))
+                   != ("match", a, rec)]
+    (ROOT / "bench" / "results" / "leaks" / "rescan" / "summary.json").write_text(json.dumps(s, indent=1, default=str))
+    tot = Counter()
+    for attack, c in sorted(s["per_attack"].items()):
+        tot.update(c)
+        print(f"{attack}: {dict(c)}")
+    print(f"all: {dict(tot)}; failed {len(s['failed'])}; exit status {s['exit_status']}; "
+          f"{s['wall_seconds']:.0f} s on 2 workers; worker seconds per suspect: "
+          + ", ".join(f"{k} {v / max(len(results), 1):.1f}" for k, v in s["stage_seconds"].items()))
+    for m in s["misses"]:
+        print("missed:", *m)
+
+
+def negatives_bench():
+    """The negatives of an issued benchmark scanned afresh with today's config, into ``leaks/negatives``.
+
+    Unmarked originals, unrelated shapes and copies under another key: none
+    may be a match.  Same folders, config and resume rule as
+    :func:`rescan_bench`.  Writes ``negatives/summary.json`` and prints the
+    false matches, the checks made and the best score against its threshold.
+    """
+    truth, results, s = _rescan("negatives", lambda kind: kind != "leak")
+    rows = [results[n] for n in truth if n in results and results[n]["verdict"] != "failed"]
+    s["best"] = max(((r["score"], r["threshold"], Path(r["suspect_path"]).stem) for r in rows
+                     if r.get("score") is not None), default=None)
+    s["thresholds"] = [min(r["threshold"] for r in rows), max(r["threshold"] for r in rows)] if rows else None
+    (ROOT / "bench" / "results" / "leaks" / "negatives" / "summary.json").write_text(
+        json.dumps(s, indent=1, default=str))
+    print(f"{len(rows)} negatives scanned ({s['negatives']}); {s['negative_asset_checks']} suspect-asset checks, "
+          f"{s['negative_recipient_checks']} recipient scores; false matches {s['false_matches']}; "
+          f"failed {len(s['failed'])}; best score {s['best']}; thresholds {s['thresholds']}; "
+          f"exit status {s['exit_status']}; {s['wall_seconds']:.0f} s on 2 workers; worker seconds per suspect: "
+          + ", ".join(f"{k} {v / max(len(rows), 1):.1f}" for k, v in s["stage_seconds"].items()))
+
+
+def _rescan(sub, keep):
+    """Scan the issued suspects whose kind ``keep`` accepts afresh into ``leaks/<sub>``; (truth, results, summary)."""
     import filecmp
 
     from pipeline.orchestrate.scan import run_scan
 
     work = ROOT / "bench" / "results" / "leaks"
-    out = work / "rescan"
+    out = work / sub
     truth = {n: tuple(v) for n, v in json.loads((work / "truth.json").read_text()).items()
-             if v[0] == "leak" and (work / "suspects" / f"{n}.ply").exists()}
+             if keep(v[0]) and (work / "suspects" / f"{n}.ply").exists()}
     if os.environ.get("POINTMARK_BENCH_RESUME") != "1":
         shutil.rmtree(out / "scan", ignore_errors=True)
     (out / "suspects").mkdir(parents=True, exist_ok=True)
@@ -397,22 +440,7 @@ def rescan_bench():
     status = run_scan(cfg, SECRET)
     wall = time.perf_counter() - t0
     results = _results(out / "scan")
-    s = _summarise(truth, results, wall, status, len(_read_catalogue(work)), float("nan"))
-    s["misses"] = [(n, a, attack, results[n]["verdict"], results[n].get("candidate_asset"),
-                    results[n].get("recipient"), results[n].get("score"), results[n].get("threshold"))
-                   for n, (_, a, rec, attack) in sorted(truth.items()) if n in results
-                   and (results[n]["verdict"], results[n].get("candidate_asset"), results[n].get("recipient"))
-                   != ("match", a, rec)]
-    (out / "summary.json").write_text(json.dumps(s, indent=1, default=str))
-    tot = Counter()
-    for attack, c in sorted(s["per_attack"].items()):
-        tot.update(c)
-        print(f"{attack}: {dict(c)}")
-    print(f"all: {dict(tot)}; failed {len(s['failed'])}; exit status {status}; {wall:.0f} s on 2 workers; "
-          f"worker seconds per suspect: " + ", ".join(f"{k} {v / max(len(results), 1):.1f}"
-                                                      for k, v in s["stage_seconds"].items()))
-    for m in s["misses"]:
-        print("missed:", *m)
+    return truth, results, _summarise(truth, results, wall, status, len(_read_catalogue(work)), float("nan"))
 
 
 def _triage_one(args):

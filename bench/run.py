@@ -1,4 +1,4 @@
-"""pointmark benchmarks: ``make bench`` (or ``python bench/run.py [spectral] [catalog] [scan] [fingerprint] [issue] [cli] [leaks] [leaks-resample] [leaks-resample-check] [leaks-trim] [leaks-parts] [leaks-rescan] [leaks-candidates] [leaks-poses] [tile]``).
+"""pointmark benchmarks: ``make bench`` (or ``python bench/run.py [spectral] [catalog] [scan] [fingerprint] [issue] [cli] [leaks] [leaks-resample] [leaks-resample-check] [leaks-trim] [leaks-parts] [leaks-rescan] [leaks-candidates] [leaks-poses] [leaks-negatives] [tile]``).
 
 Every figure is a ratio of two timings taken side by side in this one run,
 since shared machines are noisy; each timing is the best of a few repeats.
@@ -320,6 +320,7 @@ parts_bench = _leaks("parts_bench", "The part and scene leaks drawn again where 
 rescan_bench = _leaks("rescan_bench", "Every leak scanned afresh in one run (~1.5 h on 2 cores).")
 candidates_bench = _leaks("candidates_bench", "The candidate search alone for every suspect (~15 min).")
 poses_bench = _leaks("poses_bench", "Distance of crop leaks' registrations from their known pose (~3 min).")
+negatives_bench = _leaks("negatives_bench", "Every negative scanned afresh in one run (~1.5 h on 2 cores).")
 
 
 def tile_bench():
@@ -334,7 +335,8 @@ BENCHES = {"spectral": spectral_bench, "catalog": catalog_bench, "scan": scan_be
            "fingerprint": fingerprint_bench, "issue": issue_bench, "cli": cli_bench, "leaks": leaks_bench,
            "tile": tile_bench, "leaks-resample": resample_bench, "leaks-resample-check": resample_check,
            "leaks-trim": trim_bench, "leaks-parts": parts_bench, "leaks-rescan": rescan_bench,
-           "leaks-candidates": candidates_bench, "leaks-poses": poses_bench}
+           "leaks-candidates": candidates_bench, "leaks-poses": poses_bench,
+           "leaks-negatives": negatives_bench}
 DEFAULT = ["spectral", "catalog", "scan", "fingerprint", "issue", "cli"]   # the others run when named
 
 

@@ -38,6 +38,13 @@ def _common(p):
     p.add_argument("--json", action="store_true", help="print the result as JSON")
 
 
+def _positive(text):
+    """An argparse type: an integer of at least 1."""
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number of at least 1")
+    return int(text)
+
+
 def _key_args(p):
     p.add_argument("--key-id", required=True, help="id of the watermark key")
     p.add_argument("--secret-file", help="file holding the master secret (else $POINTMARK_SECRET)")
@@ -66,7 +73,8 @@ def build_parser():
     where.add_argument("--original", help="the original file, to decode an arbitrary message (paper mode)")
     p.add_argument("--asset", help="with --ledger: check only this asset key")
     p.add_argument("--bases", help="with --ledger: basis store folder (default LEDGER/bases)")
-    p.add_argument("--top-k", type=int, default=3, help="with --ledger: candidate assets checked (by shape)")
+    p.add_argument("--top-k", type=_positive, help="with --ledger: candidate assets checked, ranked by whole shape "
+                                          "(default scan.top_k; `pointmark scan` also finds parts)")
     p.add_argument("--key-id", help="with --original: id of the watermark key")
     p.add_argument("--secret-file", help="file holding the master secret (else $POINTMARK_SECRET)")
     p.add_argument("--expect", help="with --original: issued payload as HEX: also report bit errors against it")
@@ -238,7 +246,8 @@ def cmd_detect_ledger(args):
     cfg = config_mod.load_config(args.config, args.sets)
     secret = _secret(args, cfg)
     result = detect_from_ledger(args.suspect, args.ledger, secret, config_mod.detect_params(cfg),
-                                asset=args.asset, store=args.bases, top_k=args.top_k)
+                                asset=args.asset, store=args.bases,
+                                top_k=args.top_k or cfg["scan"]["top_k"])
     lines = [f"{args.suspect}: {result['verdict'].upper()} ({result['n_checked']} recipients of "
              f"{len(result['candidates'])} asset(s) checked, threshold {result['threshold']:.2f})"]
     for a in result["accused"]:

@@ -161,3 +161,11 @@ def test_evaluate_only_an_unknown_experiment_is_exit_2(tmp_path, secret_env, cap
 
     assert main(["evaluate", str(ROOT / "configs" / "evaluate-small.yaml"), "--only", "no-such"]) == 2
     assert "--only no-such: no such experiment" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "two"])
+def test_top_k_below_one_is_refused_by_the_parser(tmp_path, secret_env, capsys, value):
+    with pytest.raises(SystemExit) as exc:
+        main(["detect", str(tmp_path / "s.ply"), "--ledger", str(tmp_path), "--top-k", value])
+    assert exc.value.code == 2
+    assert f"argument --top-k: '{value}' is not a whole number of at least 1" in capsys.readouterr().err

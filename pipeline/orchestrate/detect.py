@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import config
 from ..io.ledger import Ledger
 from ..io.pointcloud import InputError, read_points
 from ..io.secrets import SecretError
@@ -69,8 +70,13 @@ def _rank(suspect_path, groups, top_k):
     return [names[i] for i in order[:top_k]]
 
 
-def detect_from_ledger(suspect, ledger_dir, secret, detect_params, *, asset=None, store=None, top_k=3):
+def detect_from_ledger(suspect, ledger_dir, secret, detect_params, *, asset=None, store=None, top_k=None):
     """Attribute one suspect file.
+
+    Without ``asset``, the ``top_k`` originals nearest the suspect by whole
+    shape (global D2) are checked (default: the config's ``scan.top_k``).
+    A part of an asset or an asset inside a scene needs ``asset`` or
+    ``pointmark scan``'s part-to-whole candidate search.
 
     Returns
     -------
@@ -83,6 +89,8 @@ def detect_from_ledger(suspect, ledger_dir, secret, detect_params, *, asset=None
     rows, materials = held_rows(ledger, secret)
     groups = candidate_groups(rows, asset)
     store = Path(store) if store else ledger.folder / "bases"
+    if top_k is None:
+        top_k = config.load_config()["scan"]["top_k"]
     candidates = _rank(suspect, groups, top_k)
     checks = [check_asset(suspect, groups[c][-1]["source_path"], groups[c], materials, store, detect_params)
               for c in candidates]
