@@ -407,7 +407,8 @@ def negatives_bench():
     rows = [results[n] for n in truth if n in results and results[n]["verdict"] != "failed"]
     s["best"] = max(((r["score"], r["threshold"], Path(r["suspect_path"]).stem) for r in rows
                      if r.get("score") is not None), default=None)
-    s["thresholds"] = [min(r["threshold"] for r in rows), max(r["threshold"] for r in rows)] if rows else None
+    limits = [r["threshold"] for r in rows if r.get("threshold") is not None]
+    s["thresholds"] = [min(limits), max(limits)] if limits else None
     (ROOT / "bench" / "results" / "leaks" / "negatives" / "summary.json").write_text(
         json.dumps(s, indent=1, default=str))
     print(f"{len(rows)} negatives scanned ({s['negatives']}); {s['negative_asset_checks']} suspect-asset checks, "

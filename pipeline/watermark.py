@@ -765,7 +765,7 @@ def _register(suspect, reference, spacing, method, tree, normals=None):
             ranked.append(features.overlap_of(searched, suspect, reference, spacing))
             best = tried[features.best_overlap(ranked)]
             if best is searched:
-                return searched          # it ends with the polish below
+                return searched          # register_search ends with the polish already
     # point-to-point ICP slides slowly along smooth surfaces: finish on the tangent planes
     return features.polish(suspect, reference, best, spacing=spacing, normals=normals)
 
