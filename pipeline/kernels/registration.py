@@ -37,6 +37,8 @@ __all__ = [
     "refine_part", "refine_plane", "rotation_search", "connected_parts", "separate_objects", "shape_signature",
 ]
 
+MAX_STEP = 0.5   # refine_plane: largest scale change and rotation (rad) of one linearised step
+
 
 @dataclass(frozen=True)
 class Similarity:
@@ -567,9 +569,17 @@ def refine_plane(suspect, tree, original, normals, start, *, spacing, iterations
             x, n = moved[keep], normals[idx[keep]]
             centre = x.mean(axis=0)
             xc = x - centre
-            design = np.column_stack([(xc * n).sum(axis=1), np.cross(xc, n), n])      # (k, 7)
+            # the scale and rotation columns divided by the matches' RMS radius: every unknown
+            # is then a length, so the least-norm step does not depend on the model's units
+            length = max(float(np.sqrt((xc ** 2).sum(axis=1).mean())), spacing)
+            design = np.column_stack([(xc * n).sum(axis=1) / length, np.cross(xc, n) / length, n])  # (k, 7)
             misfit = ((original[idx[keep]] - x) * n).sum(axis=1)
             step, *_ = np.linalg.lstsq(design, misfit, rcond=None)
+            step[:4] /= length
+            step[0] = np.clip(step[0], -MAX_STEP, MAX_STEP)          # a linearised step stays small:
+            angle = np.linalg.norm(step[1:4])                         # the scale never flips sign
+            if angle > MAX_STEP:
+                step[1:4] *= MAX_STEP / angle
             turn = Rotation.from_rotvec(step[1:4]).as_matrix()
             scale = 1.0 + step[0]
             current = _compose(Similarity(turn, scale, centre + step[4:] - scale * turn @ centre), current)

@@ -154,3 +154,30 @@ def test_plane_icp_finishes_a_crop_of_a_nearly_symmetric_shape_that_point_icp_le
     assert err(refine_part(suspect, tree, original, start, spacing=spacing, widths=(3.0,), iterations=100)) > 1.0
     fine = refine_plane(suspect, tree, original, normals, start, spacing=spacing)
     assert err(fine) < 0.1 and abs(fine.scale / 2.5 - 1) < 2e-3 and fine.fitness > 0.99
+
+
+def test_plane_icp_gives_the_same_pose_in_metres_and_millimetres():
+    # a spherical cap turned 2 degrees about the sphere's centre, started half a spacing off
+    # sideways: the turn moves points almost along their planes, the weakest direction of
+    # the step; the unknowns are solved as lengths, so the model's unit cannot change the pose
+    from scipy.spatial import cKDTree
+
+    from pipeline.kernels.registration import Similarity, refine_plane
+    from pipeline.kernels.resampling import nearest_spacing
+
+    rng = np.random.default_rng(5)
+    d = rng.normal(size=(6000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    cap = d[d[:, 2] > 0.6] + np.array([0.0, 0.0, -3.0])
+    turn = attacks.rotation_matrix("x", 2.0)
+    turned = (cap + [0, 0, 3.0]) @ turn.T - [0, 0, 3.0]
+    poses = []
+    for unit in (1.0, 1000.0):
+        original, suspect = cap * unit, turned * unit
+        spacing = float(np.median(nearest_spacing(original)))
+        start = Similarity(np.eye(3), 1.0, np.array([0.0, 0.5 * spacing, 0.0]))
+        fine = refine_plane(suspect, cKDTree(original), original, d[d[:, 2] > 0.6], start, spacing=spacing)
+        poses.append((fine.rotation, fine.scale, fine.translation / unit))
+    (r1, s1, t1), (r2, s2, t2) = poses
+    assert np.allclose(r1, r2, atol=1e-6) and abs(s1 - s2) < 1e-6 and np.allclose(t1, t2, atol=1e-6)
+    assert np.allclose(r1, turn.T, atol=1e-5) and abs(s1 - 1.0) < 1e-6     # and it is the true pose

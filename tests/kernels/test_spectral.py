@@ -97,6 +97,28 @@ def test_a_degenerate_eigenvalue_in_a_slice_falls_back_to_the_plain_shift(monkey
     assert basis_digest(basis) == basis_digest(b2[:, :200])
 
 
+def test_slices_whose_pairs_miss_the_eigenproblem_are_refused(monkeypatch):
+    # orthonormal vectors that are not eigenvectors (a slice's pairs mixed by a small
+    # rotation, as an inexact factor would leave them) pass the count and orthogonality
+    # checks; the residual check refuses them and the plain shift solves
+    real = spectral._interval
+
+    def mixed(laplacian, lo, hi, m, v0):
+        values, vectors = real(laplacian, lo, hi, m, v0)
+        c, s = np.cos(1e-4), np.sin(1e-4)
+        vectors = vectors.copy()
+        vectors[:, [0, 1]] = vectors[:, [0, 1]] @ np.array([[c, -s], [s, c]])
+        return values, vectors
+
+    k = _laplacian(1500, rng=3).tocsc()
+    v0 = 1.0 + spectral.probe_vector(k.shape[0], 0.5)
+    assert spectral._sliced(k, 158, v0) is not None
+    monkeypatch.setattr(spectral, "_interval", mixed)
+    assert spectral._sliced(k, 158, v0) is None
+    values, basis = spectral_basis(k, 150)
+    assert np.allclose(k @ basis, basis * values, atol=1e-7)
+
+
 def test_inertia_counts_the_eigenvalues_below_a_shift():
     k = _laplacian(1200, rng=4)
     lam = np.linalg.eigvalsh(k.toarray())
