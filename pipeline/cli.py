@@ -73,8 +73,8 @@ def build_parser():
     where.add_argument("--original", help="the original file, to decode an arbitrary message (paper mode)")
     p.add_argument("--asset", help="with --ledger: check only this asset key")
     p.add_argument("--bases", help="with --ledger: basis store folder (default LEDGER/bases)")
-    p.add_argument("--top-k", type=_positive, help="with --ledger: candidate assets checked, ranked by whole shape "
-                                          "(default scan.top_k; `pointmark scan` also finds parts)")
+    p.add_argument("--top-k", type=_positive, help="with --ledger: candidates checked from each ranking of the "
+                                          "scan's search, descriptor votes and shape views (default scan.top_k)")
     p.add_argument("--key-id", help="with --original: id of the watermark key")
     p.add_argument("--secret-file", help="file holding the master secret (else $POINTMARK_SECRET)")
     p.add_argument("--expect", help="with --original: issued payload as HEX: also report bit errors against it")

@@ -7,6 +7,7 @@ fingerprint recorded there.
 
 from __future__ import annotations
 
+import hashlib
 from collections import defaultdict
 from pathlib import Path
 
@@ -17,7 +18,7 @@ from ..io.ledger import Ledger
 from ..io.pointcloud import InputError, read_points
 from ..io.secrets import SecretError
 from ..kernels import keys
-from ..kernels.descriptor import d2_descriptor, descriptor_distance
+from ..kernels.descriptor import d2_descriptor
 from .attribute import check_asset, decide, usable_rows
 
 __all__ = ["detect_from_ledger", "held_rows", "candidate_groups"]
@@ -56,27 +57,44 @@ def candidate_groups(rows, asset=None):
     return groups
 
 
-def _rank(suspect_path, groups, top_k):
+def _rank(suspect_path, groups, top_k, store):
+    """The originals to check, by ``pointmark scan``'s candidate search.
+
+    Local-descriptor votes over an index of the ledger's originals (built
+    once per set of originals, kept beside the basis store) find parts of an
+    asset and assets inside a scene; the shape views find whole copies,
+    crops and near-identical assets.  Returns (asset, source sha256) keys.
+    """
+    from .scan import _build_index, _candidates, _index, triage   # (scan imports this module)
+
     if len(groups) <= top_k:
         return list(groups)
-    points = read_points(suspect_path).points
-    mine = d2_descriptor(points - points.mean(axis=0))
-    names = list(groups)
-    refs = []
-    for name in names:
-        original = read_points(groups[name][0]["source_path"]).points
-        refs.append(d2_descriptor(original - original.mean(axis=0)))
-    order = np.argsort(np.atleast_1d(descriptor_distance(mine, np.array(refs))), kind="stable")
-    return [names[i] for i in order[:top_k]]
+    keys = {f"{asset}@{sha[:16]}": (asset, sha) for asset, sha in groups}
+    paths = {k: groups[g][-1]["source_path"] for k, g in keys.items()}
+    version = hashlib.sha256("\n".join(sorted(keys)).encode()).hexdigest()[:16]
+    try:
+        index_path = _build_index(store, version, paths)
+    except OSError:                  # a read-only store: the shape views alone
+        index_path = None
+    indexed = set(_index(index_path).keys) if index_path else set()
+    descriptors = {k: None if k in indexed else _whole_d2(paths[k]) for k in keys}   # D2 for what it lacks
+    info = triage(suspect_path, descriptors, index_path)
+    return [keys[k] for k in _candidates(info, set(keys), top_k)]
+
+
+def _whole_d2(path):
+    points = read_points(path).points
+    return d2_descriptor(points - points.mean(axis=0))
 
 
 def detect_from_ledger(suspect, ledger_dir, secret, detect_params, *, asset=None, store=None, top_k=None):
     """Attribute one suspect file.
 
-    Without ``asset``, the ``top_k`` originals nearest the suspect by whole
-    shape (global D2) are checked (default: the config's ``scan.top_k``).
-    A part of an asset or an asset inside a scene needs ``asset`` or
-    ``pointmark scan``'s part-to-whole candidate search.
+    Without ``asset``, the candidates of ``pointmark scan``'s search are
+    checked: the ``top_k`` best by local-descriptor votes and the ``top_k``
+    best by shape views, interleaved (default: the config's ``scan.top_k``),
+    so parts of an asset and assets inside a scene are found as a scan
+    finds them.
 
     Returns
     -------
@@ -91,7 +109,7 @@ def detect_from_ledger(suspect, ledger_dir, secret, detect_params, *, asset=None
     store = Path(store) if store else ledger.folder / "bases"
     if top_k is None:
         top_k = config.load_config()["scan"]["top_k"]
-    candidates = _rank(suspect, groups, top_k)
+    candidates = _rank(suspect, groups, top_k, store)
     checks = [check_asset(suspect, groups[c][-1]["source_path"], groups[c], materials, store, detect_params)
               for c in candidates]
     result = decide(checks, detect_params.epsilon)

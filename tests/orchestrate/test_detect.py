@@ -45,6 +45,28 @@ def test_detect_from_the_ledger_needs_no_config(issued):
     assert out["n_checked"] == 4 and SECRET not in res.stdout + res.stderr
 
 
+def test_a_scene_holding_a_copy_is_found_by_the_scans_candidate_search(issued):
+    # an issued blob inside a scene of other shapes: by whole shape (global D2) the scene is
+    # nearer the other asset, so checking the one nearest original missed it; the scan's search
+    # (local-descriptor votes and the scene's separate objects) puts the blob among the candidates
+    import numpy as np
+
+    from pipeline.kernels.descriptor import d2_descriptor, descriptor_distance
+
+    tmp, ledger = issued
+    points = read_points(tmp / "out" / "marked" / "bob" / "asset-0.ply").points
+    scene = attacks.apply_chain(points, [("random_similarity", None), ("clutter", 3.0), ("shuffle", None)], 1)
+    write_array(tmp, "scene", scene, "ply")
+    whole = [d2_descriptor(p - p.mean(axis=0)) for p in
+             (read_points(tmp / "assets" / name).points for name in ("asset-0.ply", "asset-1.pcd"))]
+    assert np.argmin(descriptor_distance(d2_descriptor(scene - scene.mean(axis=0)), np.array(whole))) == 1
+    res = _cli(tmp, "detect", "scene.ply", "--ledger", str(ledger), "--top-k", "1", "--json")
+    assert res.returncode == 0, res.stderr
+    out = json.loads(res.stdout)
+    assert "asset-0" in out["candidates"] and out["verdict"] == "match", out
+    assert [(a["asset_key"], a["recipient"]) for a in out["accused"]] == [("asset-0", "bob")]
+
+
 def test_an_unmarked_original_is_no_match(issued):
     tmp, ledger = issued
     res = _cli(tmp, "detect", str(tmp / "assets" / "asset-0.ply"), "--ledger", str(ledger), "--json")
