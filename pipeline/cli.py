@@ -248,8 +248,9 @@ def cmd_detect_ledger(args):
     result = detect_from_ledger(args.suspect, args.ledger, secret, config_mod.detect_params(cfg),
                                 asset=args.asset, store=args.bases,
                                 top_k=args.top_k or cfg["scan"]["top_k"])
-    lines = [f"{args.suspect}: {result['verdict'].upper()} ({result['n_checked']} recipients of "
-             f"{len(result['candidates'])} asset(s) checked, threshold {result['threshold']:.2f})"]
+    lines = [f"{args.suspect}: {result['verdict'].upper()} ({result['n_candidates_checked']} of "
+             f"{len(result['candidates'])} candidate asset(s) checked, up to the first match; threshold "
+             f"{result['threshold']:.2f} for {result['n_checked']} recipients)"]
     for a in result["accused"]:
         gens = ", ".join(f"generation {g}" for g, _ in a["copies"])
         lines.append(f"  accused: {a['recipient']} (asset {a['asset_key']}, key {a['key_id']}, {gens}): "

@@ -63,11 +63,13 @@ def _rank(suspect_path, groups, top_k, store):
     Local-descriptor votes over an index of the ledger's originals (built
     once per set of originals, kept beside the basis store) find parts of an
     asset and assets inside a scene; the shape views find whole copies,
-    crops and near-identical assets.  Returns (asset, source sha256) keys.
+    crops and near-identical assets.  Fewer originals than ``top_k`` are
+    all returned, ranked, so the first match comes early.  Returns (asset,
+    source sha256) keys.
     """
     from .scan import _build_index, _candidates, _index, triage   # (scan imports this module)
 
-    if len(groups) <= top_k:
+    if len(groups) == 1:
         return list(groups)
     keys = {f"{asset}@{sha[:16]}": (asset, sha) for asset, sha in groups}
     paths = {k: groups[g][-1]["source_path"] for k, g in keys.items()}
@@ -87,6 +89,23 @@ def _whole_d2(path):
     return d2_descriptor(points - points.mean(axis=0))
 
 
+def _check_in_order(suspect, candidates, groups, materials, store, detect_params):
+    """Check candidates best-ranked first and stop at the first match, as a scan does.
+
+    The threshold counts every recipient of every candidate planned, so
+    stopping early adds no chance to accuse.
+    """
+    from .scan import planned_recipients
+
+    planned = planned_recipients([groups[c] for c in candidates], materials)
+    checks = []
+    for c in candidates:
+        checks.append(check_asset(suspect, groups[c][-1]["source_path"], groups[c], materials, store, detect_params))
+        if decide(checks, detect_params.epsilon, planned=planned)["accused"]:
+            break
+    return {**decide(checks, detect_params.epsilon, planned=planned), "checks": checks}
+
+
 def detect_from_ledger(suspect, ledger_dir, secret, detect_params, *, asset=None, store=None, top_k=None):
     """Attribute one suspect file.
 
@@ -94,13 +113,13 @@ def detect_from_ledger(suspect, ledger_dir, secret, detect_params, *, asset=None
     checked: the ``top_k`` best by local-descriptor votes and the ``top_k``
     best by shape views, interleaved (default: the config's ``scan.top_k``),
     so parts of an asset and assets inside a scene are found as a scan
-    finds them.
+    finds them.  They are checked best-ranked first, up to the first match.
 
     Returns
     -------
     dict
         The verdict of :func:`pipeline.orchestrate.attribute.decide`, plus
-        ``suspect``, ``candidates`` and per-check timings.
+        ``suspect``, ``candidates``, ``n_candidates_checked`` and per-check timings.
     """
     ledger = Ledger(ledger_dir)
     read_points(suspect)                         # a bad suspect stops here, before any work
@@ -110,9 +129,8 @@ def detect_from_ledger(suspect, ledger_dir, secret, detect_params, *, asset=None
     if top_k is None:
         top_k = config.load_config()["scan"]["top_k"]
     candidates = _rank(suspect, groups, top_k, store)
-    checks = [check_asset(suspect, groups[c][-1]["source_path"], groups[c], materials, store, detect_params)
-              for c in candidates]
-    result = decide(checks, detect_params.epsilon)
-    result.update(suspect=str(suspect), candidates=[c[0] for c in candidates],
+    result = _check_in_order(suspect, candidates, groups, materials, store, detect_params)
+    checks = result.pop("checks")
+    result.update(suspect=str(suspect), candidates=[c[0] for c in candidates], n_candidates_checked=len(checks),
                   seconds=[c["seconds"] for c in checks], ledger_version=ledger.version())
     return result

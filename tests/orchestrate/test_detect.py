@@ -43,6 +43,21 @@ def test_detect_from_the_ledger_needs_no_config(issued):
     accused = out["accused"][0]
     assert accused["asset_key"] == "asset-1" and accused["p_value"] < 1e-6 and accused["margin"] > 3
     assert out["n_checked"] == 4 and SECRET not in res.stdout + res.stderr
+    assert out["n_candidates_checked"] == out["candidates"].index("asset-1") + 1
+
+
+def test_the_search_stops_at_the_first_match_and_counts_every_planned_recipient(issued):
+    from pipeline import config
+    from pipeline.orchestrate.detect import detect_from_ledger
+
+    tmp, ledger = issued
+    points = read_points(tmp / "out" / "marked" / "alice" / "asset-0.ply").points
+    write_array(tmp, "first", attacks.apply_chain(points, [("noise", 0.002), ("shuffle", None)], 5), "ply")
+    out = detect_from_ledger(tmp / "first.ply", ledger, SECRET.encode(),
+                             config.detect_params(config.load_config()))
+    assert out["candidates"] == ["asset-0", "asset-1"] and out["n_candidates_checked"] == 1
+    assert [a["recipient"] for a in out["accused"]] == ["alice"]
+    assert out["n_checked"] == 4      # the unchecked candidate's recipients count in the threshold
 
 
 def test_a_scene_holding_a_copy_is_found_by_the_scans_candidate_search(issued):
@@ -72,6 +87,7 @@ def test_an_unmarked_original_is_no_match(issued):
     res = _cli(tmp, "detect", str(tmp / "assets" / "asset-0.ply"), "--ledger", str(ledger), "--json")
     out = json.loads(res.stdout)
     assert res.returncode == 0 and out["verdict"] == "no match" and out["accused"] == []
+    assert out["n_candidates_checked"] == len(out["candidates"]) == 2     # no match: every candidate checked
 
 
 @pytest.mark.parametrize("secret, needle", [("8bytes!!", "at least 16"),
