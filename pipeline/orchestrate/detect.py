@@ -11,8 +11,6 @@ import hashlib
 from collections import defaultdict
 from pathlib import Path
 
-import numpy as np
-
 from .. import config
 from ..io.ledger import Ledger
 from ..io.pointcloud import InputError, read_points
