@@ -179,9 +179,13 @@ def _shift_invert(laplacian, shift):
     solves faster.  Raises RuntimeError when K - shift I is singular.
     """
     n = laplacian.shape[0]
-    shifted = (laplacian - shift * sp.identity(n, format="csc")).tocsc()
-    lu = splu(shifted, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=PIVOT, options={"SymmetricMode": True})
-    return LinearOperator((n, n), matvec=lu.solve, dtype=np.float64)
+    return LinearOperator((n, n), matvec=_factor(laplacian, shift, PIVOT).solve, dtype=np.float64)
+
+
+def _factor(laplacian, shift, pivot):
+    """SuperLU factor of K - shift I in a symmetric minimum-degree order."""
+    shifted = (laplacian - shift * sp.identity(laplacian.shape[0], format="csc")).tocsc()
+    return splu(shifted, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=pivot, options={"SymmetricMode": True})
 
 
 def _inertia(laplacian, shift):
@@ -192,9 +196,7 @@ def _inertia(laplacian, shift):
     negative eigenvalues.  The count only plans the slices: each slice
     proves its own.
     """
-    n = laplacian.shape[0]
-    shifted = (laplacian - shift * sp.identity(n, format="csc")).tocsc()
-    lu = splu(shifted, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    lu = _factor(laplacian, shift, 0.0)
     if not np.array_equal(lu.perm_r, lu.perm_c):
         return None
     return int((lu.U.diagonal() < 0).sum())

@@ -72,10 +72,7 @@ def _rank(suspect_path, groups, top_k, store):
     keys = {f"{asset}@{sha[:16]}": (asset, sha) for asset, sha in groups}
     paths = {k: groups[g][-1]["source_path"] for k, g in keys.items()}
     version = hashlib.sha256("\n".join(sorted(keys)).encode()).hexdigest()[:16]
-    try:
-        index_path = _build_index(store, version, paths)
-    except OSError:                  # a read-only store: the shape views alone
-        index_path = None
+    index_path = _build_index(store, version, paths)
     indexed = set(_index(index_path).keys) if index_path else set()
     descriptors = {k: None if k in indexed else _whole_d2(paths[k]) for k in keys}   # D2 for what it lacks
     info = triage(suspect_path, descriptors, index_path)
