@@ -602,13 +602,17 @@ class FeatureIndex:
         """Write the index as a ``.npz`` file."""
         from .io.pointcloud import atomic_write_bytes
 
+        atomic_write_bytes(path, self.to_bytes())
+
+    def to_bytes(self):
+        """The index as the bytes of a ``.npz`` file."""
         buf = io.BytesIO()
         extra = {} if self.cells is None else {"centroids": self.cells.centroids, "cell": self.cells.cell}
         if self.shapes is not None:
             extra.update(shapes=self.shapes, shape_owner=self.shape_owner)
         np.savez(buf, keys=np.array(self.keys, dtype=str), features=self.features, owner=self.owner,
                  hashes=np.array(self.hashes, dtype=str), prior=self.prior, **extra)
-        atomic_write_bytes(path, buf.getvalue())
+        return buf.getvalue()
 
     @classmethod
     def load(cls, path):

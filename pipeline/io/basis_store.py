@@ -5,24 +5,80 @@ reference (never by its path), so the catalogue run, detection, scans and the
 evaluation share one copy.  An entry is a folder of ``.npy`` files, each
 written atomically: ``meta`` (frame and clusters, from the plan task) and one
 file per cluster (basis, normals, radius, from the parallel cluster tasks).
+
+A store that cannot be written (a read-only copy of a ledger kept as
+evidence, a scan account without write access) is still read; what it lacks
+is written to its stand-in (:func:`stand_in`), a per-user folder that every
+process finds from the store's path, and the first such write in a process
+says so on stderr.
 """
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import io
 import json
+import os
+import sys
 from pathlib import Path
 
 import numpy as np
 
 from .pointcloud import atomic_write_bytes
 
-__all__ = ["BasisStore", "reference_params", "STORE_VERSION"]
+__all__ = ["BasisStore", "reference_params", "stand_in", "find_file", "write_file", "STORE_VERSION"]
 
 STORE_VERSION = 1
 _REFERENCE_FIELDS = ("n_bits", "crc_bits", "chip_rate", "first_coefficient", "valence", "n_clusters",
                      "cluster_size", "seeds", "on_touch", "cover", "displacement")
+
+
+_REFUSED = (errno.EROFS, errno.EACCES, errno.EPERM)   # errors that send a write to the stand-in
+_ANNOUNCED = set()                                     # stores whose stand-in this process announced
+
+
+def stand_in(folder):
+    """The per-user folder that takes what a read-only store lacks.
+
+    ``$POINTMARK_CACHE`` (default ``$XDG_CACHE_HOME/pointmark``, else
+    ``~/.cache/pointmark``), then ``stores/`` and 16 hex digits of the
+    store's absolute path.
+    """
+    cache = os.environ.get("POINTMARK_CACHE") or (
+        Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "pointmark")
+    return Path(cache) / "stores" / hashlib.sha256(os.path.abspath(folder).encode()).hexdigest()[:16]
+
+
+def find_file(folder, relative):
+    """The existing files at ``relative`` in ``folder`` and in its stand-in, in that order.
+
+    Returns
+    -------
+    list of pathlib.Path
+    """
+    return [p for p in (Path(folder) / relative, stand_in(folder) / relative) if p.is_file()]
+
+
+def write_file(folder, relative, data):
+    """Write bytes at ``relative`` in ``folder`` (atomically), or in its stand-in when it refuses.
+
+    Returns
+    -------
+    pathlib.Path
+        Where the bytes are.
+    """
+    try:
+        return atomic_write_bytes(Path(folder) / relative, data)
+    except OSError as exc:
+        if exc.errno not in _REFUSED:
+            raise
+        spare = stand_in(folder)
+        if str(folder) not in _ANNOUNCED:
+            _ANNOUNCED.add(str(folder))
+            print(f"[pointmark] {folder} cannot be written ({exc.strerror}): what it lacks goes to {spare}",
+                  file=sys.stderr, flush=True)
+        return atomic_write_bytes(spare / relative, data)
 
 
 def reference_params(params):
@@ -51,23 +107,19 @@ class BasisStore:
                           sort_keys=True, default=list)
         return hashlib.sha256(text.encode()).hexdigest()[:24]
 
-    def _path(self, key, name):
-        return self.folder / key / f"{name}.npz"
-
     def _save(self, key, name, arrays):
         buf = io.BytesIO()
         np.savez(buf, **arrays)
-        atomic_write_bytes(self._path(key, name), buf.getvalue())
+        write_file(self.folder, f"{key}/{name}.npz", buf.getvalue())
 
     def _load(self, key, name):
-        path = self._path(key, name)
-        if not path.is_file():
-            return None
-        try:
-            with np.load(path) as data:
-                return {k: data[k] for k in data.files}
-        except (OSError, ValueError):
-            return None  # a damaged entry is rebuilt, and verified against the ledger
+        for path in find_file(self.folder, f"{key}/{name}.npz"):
+            try:
+                with np.load(path) as data:
+                    return {k: data[k] for k in data.files}
+            except (OSError, ValueError):
+                continue  # a damaged entry is rebuilt, and verified against the ledger
+        return None
 
     def save_meta(self, key, centre, phi, seeds, members):
         """Frame and clusters: centre (3,), phi, seed indices (k,), members list of (n_c,) int."""
@@ -100,7 +152,7 @@ class BasisStore:
 
     def has(self, key, name):
         """Whether the entry holds a file ``name`` (not whether it loads)."""
-        return self._path(key, name).is_file()
+        return bool(find_file(self.folder, f"{key}/{name}.npz"))
 
     def save_array(self, key, name, array):
         """Any further array of an entry (detection aids: normals, spacing, grams)."""

@@ -43,6 +43,7 @@ import numpy as np
 import pyarrow as pa
 
 from .. import __version__, config as config_mod
+from ..io.basis_store import find_file, write_file
 from ..io.catalog import discover_assets, read_catalogue
 from ..io.evidence import render_match, write_summary
 from ..io.ledger import Ledger
@@ -147,12 +148,17 @@ INDEX_FORMAT = "v4"   # v2: inverted-file cells; v3: whole and cut shape views; 
 
 
 def _build_index(out, cat_version, catalogue_paths):
-    """The catalogue's local-descriptor index, built once per catalogue version."""
+    """The catalogue's local-descriptor index, built once per catalogue version.
+
+    Kept in ``out`` (a scan's folder, or the basis store for ``detect
+    --ledger``), or in its stand-in when ``out`` cannot be written.
+    """
     from ..features import build_index
 
-    path = Path(out) / "state" / f"index-{INDEX_FORMAT}-{cat_version}.npz"
-    if path.exists() or not catalogue_paths:
-        return str(path) if path.exists() else None
+    name = f"state/index-{INDEX_FORMAT}-{cat_version}.npz"
+    found = find_file(out, name)
+    if found or not catalogue_paths:
+        return str(found[0]) if found else None
     clouds, missing = {}, []
     for key, file in sorted(catalogue_paths.items()):
         try:
@@ -163,11 +169,8 @@ def _build_index(out, cat_version, catalogue_paths):
         return None
     index = build_index(clouds)
     if missing:                          # not saved: the next scan builds it whole
-        tmp = Path(out) / "state" / f".index-{cat_version}-partial.npz"
-        index.save(tmp)
-        return str(tmp)
-    index.save(path)
-    return str(path)
+        return str(write_file(out, f"state/.index-{cat_version}-partial.npz", index.to_bytes()))
+    return str(write_file(out, name, index.to_bytes()))
 
 
 def _reference(cfg, secret):

@@ -11,6 +11,7 @@ from pipeline.io.ledger import Ledger
 from pipeline.io.pointcloud import read_points, write_array, sha256_file
 from pipeline.kernels import attacks
 from tests.conftest import ROOT
+from tests.readonly import frozen, tree_bytes, unprivileged
 from tests.orchestrate.test_run import SECRET, _run, make_catalogue, write_config
 
 pytestmark = pytest.mark.slow
@@ -128,3 +129,27 @@ def test_an_unmarked_original_is_never_a_match_whatever_the_hash_table_holds(iss
     assert res.returncode == 0, res.stdout + res.stderr
     [result] = read_scan(tmp_path / "scan")
     assert result["verdict"] == "no match" and result["recipient"] is None
+
+
+def test_a_read_only_ledger_is_read_and_its_store_gets_a_stand_in(tmp_path):
+    # a ledger kept as evidence, mounted read-only, or a scan account without write access
+    src = make_catalogue(tmp_path / "assets", n_assets=2)
+    _run(write_config(tmp_path, src), serial=True)
+    ledger, cache = tmp_path / "out" / "manifests", tmp_path / "cache"
+    points = read_points(tmp_path / "out" / "marked" / "alice" / "asset-1.pcd").points
+    leak = attacks.apply_chain(points, [("random_similarity", None), ("shuffle", None)], 6)
+    write_array(tmp_path, "found", leak, "ply")
+    env = dict(os.environ, PYTHONPATH=str(ROOT), POINTMARK_SECRET=SECRET, POINTMARK_CACHE=str(cache))
+    with frozen(ledger):
+        before = tree_bytes(ledger)
+        runs = [subprocess.run([*unprivileged(), sys.executable, "-m", "pipeline.cli", "detect", "found.ply",
+                                "--ledger", str(ledger), "--json"], cwd=tmp_path, env=env, capture_output=True,
+                               text=True, timeout=600) for _ in range(2)]
+        assert tree_bytes(ledger) == before
+    for res in runs:
+        assert res.returncode == 0, res.stderr
+        out = json.loads(res.stdout)
+        assert out["verdict"] == "match" and [a["recipient"] for a in out["accused"]] == ["alice"]
+    assert f"{ledger / 'bases'} cannot be written" in runs[0].stderr
+    assert "cannot be written" not in runs[1].stderr            # the second run found all it needs there
+    assert list(cache.glob("stores/*/state/index-*.npz"))        # the candidate index, in the stand-in
