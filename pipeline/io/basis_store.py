@@ -10,7 +10,7 @@ A store that cannot be written (a read-only copy of a ledger kept as
 evidence, a scan account without write access) is still read; what it lacks
 is written to its stand-in (:func:`stand_in`), a per-user folder that every
 process finds from the store's path, and the first such write in a process
-says so on stderr.
+says so on stderr.  A writable store never reads its stand-in.
 """
 
 from __future__ import annotations
@@ -21,6 +21,8 @@ import io
 import json
 import os
 import sys
+import tempfile
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -34,8 +36,9 @@ _REFERENCE_FIELDS = ("n_bits", "crc_bits", "chip_rate", "first_coefficient", "va
                      "cluster_size", "seeds", "on_touch", "cover", "displacement")
 
 
-_REFUSED = (errno.EROFS, errno.EACCES, errno.EPERM)   # errors that send a write to the stand-in
-_ANNOUNCED = set()                                     # stores whose stand-in this process announced
+_REFUSED = (errno.EROFS, errno.EACCES, errno.EPERM)   # errors that make a store read-only here
+_REFUSALS = {}        # real path of a store -> why it cannot be written (None: it can), per process
+_ANNOUNCED = set()    # stores whose stand-in this process has announced
 
 
 def stand_in(folder):
@@ -43,42 +46,91 @@ def stand_in(folder):
 
     ``$POINTMARK_CACHE`` (default ``$XDG_CACHE_HOME/pointmark``, else
     ``~/.cache/pointmark``), then ``stores/`` and 16 hex digits of the
-    store's absolute path.
+    store's real path.
+
+    Raises
+    ------
+    RuntimeError
+        Neither variable is set and the user has no home folder.
     """
     cache = os.environ.get("POINTMARK_CACHE") or (
         Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "pointmark")
-    return Path(cache) / "stores" / hashlib.sha256(os.path.abspath(folder).encode()).hexdigest()[:16]
+    return Path(cache) / "stores" / hashlib.sha256(os.path.realpath(folder).encode()).hexdigest()[:16]
+
+
+def _refusal(folder):
+    """Why ``folder`` cannot be written (a probe file, once per process), or None when it can.
+
+    Only a refusal (read-only file system, permission) counts; any other
+    error is left to the write that meets it.
+    """
+    key = os.path.realpath(folder)
+    if key not in _REFUSALS:
+        try:
+            Path(folder).mkdir(parents=True, exist_ok=True)
+            fd, probe = tempfile.mkstemp(prefix=".probe-", dir=folder)
+            os.close(fd)
+            os.unlink(probe)
+            _REFUSALS[key] = None
+        except OSError as exc:
+            _REFUSALS[key] = exc.strerror if exc.errno in _REFUSED else None
+    return _REFUSALS[key]
 
 
 def find_file(folder, relative):
-    """The existing files at ``relative`` in ``folder`` and in its stand-in, in that order.
+    """The existing files at ``relative`` in ``folder`` and, when it cannot be written, in its stand-in.
+
+    The store's own file comes first.  A writable store never reads its
+    stand-in, so an old stand-in cannot shadow what the store rebuilds.
 
     Returns
     -------
     list of pathlib.Path
     """
-    return [p for p in (Path(folder) / relative, stand_in(folder) / relative) if p.is_file()]
+    places = [Path(folder) / relative]
+    if _refusal(folder) is not None:
+        try:
+            places.append(stand_in(folder) / relative)
+        except RuntimeError:
+            pass
+    found = []
+    for path in places:
+        try:
+            if path.is_file():
+                found.append(path)
+        except OSError:          # a stand-in this user cannot search: as if absent
+            pass
+    return found
 
 
 def write_file(folder, relative, data):
-    """Write bytes at ``relative`` in ``folder`` (atomically), or in its stand-in when it refuses.
+    """Write bytes at ``relative`` in ``folder`` (atomically), or in its stand-in when it cannot be written.
 
     Returns
     -------
     pathlib.Path
         Where the bytes are.
+
+    Raises
+    ------
+    OSError
+        The store refuses and so does its stand-in (one message naming both).
     """
-    try:
+    reason = _refusal(folder)
+    if reason is None:
         return atomic_write_bytes(Path(folder) / relative, data)
-    except OSError as exc:
-        if exc.errno not in _REFUSED:
-            raise
+    try:
         spare = stand_in(folder)
-        if str(folder) not in _ANNOUNCED:
-            _ANNOUNCED.add(str(folder))
-            print(f"[pointmark] {folder} cannot be written ({exc.strerror}): what it lacks goes to {spare}",
-                  file=sys.stderr, flush=True)
-        return atomic_write_bytes(spare / relative, data)
+        path = atomic_write_bytes(spare / relative, data)
+    except (OSError, RuntimeError) as exc:
+        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        raise OSError(errno.EACCES, f"{folder} cannot be written ({reason}), nor its stand-in ({why}): "
+                                    f"set POINTMARK_CACHE to a writable folder") from None
+    if os.path.realpath(folder) not in _ANNOUNCED:
+        _ANNOUNCED.add(os.path.realpath(folder))
+        print(f"[pointmark] {folder} cannot be written ({reason}): what it lacks goes to {spare}",
+              file=sys.stderr, flush=True)
+    return path
 
 
 def reference_params(params):
@@ -117,7 +169,7 @@ class BasisStore:
             try:
                 with np.load(path) as data:
                     return {k: data[k] for k in data.files}
-            except (OSError, ValueError):
+            except (OSError, ValueError, KeyError, zipfile.BadZipFile):
                 continue  # a damaged entry is rebuilt, and verified against the ledger
         return None
 

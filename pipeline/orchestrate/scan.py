@@ -35,6 +35,7 @@ import hashlib
 import json
 import sys
 import time
+import zipfile
 from collections import defaultdict
 from datetime import datetime, timezone
 from pathlib import Path
@@ -147,6 +148,14 @@ def _candidates(info, view, top_k, margin=1.6):
 INDEX_FORMAT = "v4"   # v2: inverted-file cells; v3: whole and cut shape views; v4: and the dense view
 
 
+def _loads(index_path):
+    try:
+        _index(index_path)
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile):
+        return False
+    return True
+
+
 def _build_index(out, cat_version, catalogue_paths):
     """The catalogue's local-descriptor index, built once per catalogue version.
 
@@ -156,7 +165,7 @@ def _build_index(out, cat_version, catalogue_paths):
     from ..features import build_index
 
     name = f"state/index-{INDEX_FORMAT}-{cat_version}.npz"
-    found = find_file(out, name)
+    found = [p for p in find_file(out, name) if _loads(p)]      # a damaged one is rebuilt
     if found or not catalogue_paths:
         return str(found[0]) if found else None
     clouds, missing = {}, []
