@@ -27,7 +27,7 @@ from ..watermark import WatermarkParams, estimate_differences, fingerprint_lengt
 from .reference import load_reference
 from .tasks import copy_label
 
-__all__ = ["params_from_row", "check_asset", "decide", "usable_rows", "TOP"]
+__all__ = ["params_from_row", "check_asset", "decide", "usable_rows", "original_files", "TOP"]
 
 TOP = 8          # best scores kept per reference and key, beyond those over the floor
 FLOOR = 4.0      # scores kept whatever their rank (an accusation needs more than 5 at any scale)
@@ -47,20 +47,25 @@ def usable_rows(rows, secret_fingerprints):
             and r["key_fingerprint"] in secret_fingerprints]
 
 
-def check_asset(suspect_path, original_path, rows, materials, store, detect_params):
+def check_asset(suspect_path, rows, materials, store, detect_params, *, places=()):
     """Score every issued recipient of one asset against one suspect.
 
     Parameters
     ----------
-    suspect_path, original_path : str or Path
+    suspect_path : str or Path
     rows : list of dict
-        Issued ledger rows of the asset (status ok), any generations; only
-        those issued from the original's present bytes can be checked.
+        Issued ledger rows of the asset (status ok), any generations and
+        any bytes of its original: each set of copies is checked against
+        the file holding the bytes it was issued from
+        (:func:`original_files`).
     materials : dict key_id -> bytes
         Derived key material of the key ids the caller holds.
     store : str or Path
         The basis store.
     detect_params : DetectParams
+    places : sequence of str or Path
+        Files to try first for an original (the catalogue's), before the
+        source paths the ledger recorded.
 
     Returns
     -------
@@ -71,24 +76,22 @@ def check_asset(suspect_path, original_path, rows, materials, store, detect_para
     Raises
     ------
     InputError
-        The original is missing or no longer the bytes the ledger recorded.
+        No file holds the bytes some of the copies were issued from (they
+        cannot be checked: never "no match"), or an original cannot be read.
     ReferenceMismatch
         The rebuilt reference differs from the one recorded at embedding.
     """
+    files = original_files(rows, places)          # before any work: every set of copies can be checked
     suspect = read_points(suspect_path).points
-    original = read_points(original_path).points
-    sha = sha256_file(original_path)
-    current = [r for r in rows if r["source_sha256"] == sha]   # copies issued from these very bytes
-    if not current:
-        raise InputError(f"{original_path}: the original's bytes differ from those recorded in the ledger "
-                         f"(sha256 {rows[0]['source_sha256'][:12]}...)")
-    rows = current
+    originals = {sha: read_points(path).points for sha, path in files.items()}
     by_ref = defaultdict(list)
     for r in rows:
         by_ref[r["reference_key"]].append(r)
     groups, seconds = [], {"registration": 0.0, "estimate": 0.0, "scoring": 0.0}
     for ref_key, ref_rows in sorted(by_ref.items()):
         params = params_from_row(ref_rows[0])
+        sha = ref_rows[0]["source_sha256"]       # (a reference is one original's bytes under one parameter set)
+        original = originals[sha]
         ref = load_reference(original, params, store, ref_key,
                              {"membership": ref_rows[0]["cluster_membership_digests"],
                               "basis": ref_rows[0]["cluster_basis_digests"]}, detection=True)
@@ -101,9 +104,49 @@ def check_asset(suspect_path, original_path, rows, materials, store, detect_para
         for key_id, generation_id in sorted({(r["key_id"], r["generation_id"]) for r in ref_rows}):
             if key_id in materials:
                 rows_g = [r for r in ref_rows if (r["key_id"], r["generation_id"]) == (key_id, generation_id)]
-                groups.append(_score_group(y, ref, params, rows_g, materials[key_id], est["registration"]))
+                groups.append({**_score_group(y, ref, params, rows_g, materials[key_id], est["registration"]),
+                               "original_path": str(files[sha])})
         seconds["scoring"] += time.perf_counter() - t0
     return {"asset_key": rows[0]["asset_key"], "groups": groups, "seconds": seconds}
+
+
+def original_files(rows, places=()):
+    """The file holding the bytes each set of copies was issued from.
+
+    For each original sha256 of ``rows``, the first of ``places`` and then
+    the source paths recorded for those copies (newest first) whose bytes
+    have that hash: an original moved, or replaced by new bytes that were
+    issued in turn, still finds the copies issued from the old ones.
+
+    Returns
+    -------
+    dict
+        source sha256 -> path.
+
+    Raises
+    ------
+    InputError
+        No file tried holds the bytes of some copies.
+    """
+    found = {}
+    for sha in dict.fromkeys(r["source_sha256"] for r in reversed(rows)):
+        mine = [r for r in reversed(rows) if r["source_sha256"] == sha]
+        tried = list(dict.fromkeys([*map(str, places), *(r["source_path"] for r in mine)]))
+        hit = next((p for p in tried if _sha256_or_none(p) == sha), None)
+        if hit is None:
+            raise InputError(f"{mine[0]['asset_key']}: the original of {len(mine)} issued cop"
+                             f"{'y' if len(mine) == 1 else 'ies'} (sha256 {sha[:12]}...) is in none of "
+                             f"{', '.join(tried)}: they cannot be checked until a file with those bytes is back "
+                             f"at one of these paths")
+        found[sha] = hit
+    return found
+
+
+def _sha256_or_none(path):
+    try:
+        return sha256_file(path)
+    except OSError:
+        return None
 
 
 def _score_group(y, ref, params, rows, material, registration):
@@ -159,7 +202,8 @@ def decide(checks, epsilon, prior_checked=0, planned=0):
               "accused": [{"recipient": b["recipient"], "asset_key": g["asset_key"], "key_id": g["key_id"],
                            "score": s, "p_value": fingerprint.corrected_p(s, n_checked), "margin": s - innocent,
                            "copies": b["copies"], "registration": g["registration"],
-                           "cluster_scores": b["cluster_scores"], "reference_key": g["reference_key"]}
+                           "cluster_scores": b["cluster_scores"], "reference_key": g["reference_key"],
+                           "original_path": g.get("original_path")}
                           for s, g, b in accused]}
     # a mark is there but nobody clears the threshold: say so, never "no match"
     if accused:

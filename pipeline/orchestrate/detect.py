@@ -95,7 +95,7 @@ def _check_in_order(suspect, candidates, groups, materials, store, detect_params
     planned = planned_recipients([groups[c] for c in candidates], materials)
     checks = []
     for c in candidates:
-        checks.append(check_asset(suspect, groups[c][-1]["source_path"], groups[c], materials, store, detect_params))
+        checks.append(check_asset(suspect, groups[c], materials, store, detect_params))
         if decide(checks, detect_params.epsilon, planned=planned)["accused"]:
             break
     return {**decide(checks, detect_params.epsilon, planned=planned), "checks": checks}

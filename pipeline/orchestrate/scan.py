@@ -265,9 +265,9 @@ def run_scan(cfg, secret, *, force=False):
                 # stops at the first match: the threshold counts every
                 # recipient of every candidate planned, so stopping early
                 # adds no chance to accuse
-                info["queue"] = [(a, view[a]) for a in info["candidates"]]
+                info["queue"] = [(view[a], [str(paths[a])] if a in paths else []) for a in info["candidates"]]
                 if not _submit_next(client, info, materials, store, detect_params, waiting, pending):
-                    counts[_finish(out, versions, info, detect_params.epsilon, issued, store)] += 1
+                    counts[_finish(out, versions, info, detect_params.epsilon, store)] += 1
             else:
                 info = waiting.pop(fut)
                 if fut.status == "finished":
@@ -276,7 +276,7 @@ def run_scan(cfg, secret, *, force=False):
                     info["errors"].append(_text(fut.exception()))
                 matched = decide(info["checks"], detect_params.epsilon, _prior(info), info["planned"])["accused"]
                 if matched or not _submit_next(client, info, materials, store, detect_params, waiting, pending):
-                    verdict = _finish(out, versions, info, detect_params.epsilon, issued, store)
+                    verdict = _finish(out, versions, info, detect_params.epsilon, store)
                     counts[verdict] += 1
                     print(f"[pointmark] scan: {info['path']}: {verdict}", file=sys.stderr, flush=True)
     finally:
@@ -335,8 +335,8 @@ def _submit_next(client, info, materials, store, detect_params, waiting, pending
     """
     if not info["queue"]:
         return False
-    asset, rows = info["queue"].pop(0)
-    fut = client.submit(check_asset, info["path"], rows[-1]["source_path"], rows, materials, store, detect_params,
+    rows, places = info["queue"].pop(0)
+    fut = client.submit(check_asset, info["path"], rows, materials, store, detect_params, places=places,
                         pure=False, priority=1)
     waiting[fut] = info
     pending.add(fut)
@@ -374,7 +374,7 @@ def render_evidence(suspect_path, original_path, accused, store, path):
                         {**accused["registration"], "centre": centre}, members, accused["cluster_scores"], title, path)
 
 
-def _finish(out, versions, info, epsilon, issued, store):
+def _finish(out, versions, info, epsilon, store):
     if info["errors"]:     # a check that raised is never "no match": retried next scan
         _record(out, versions, info, "failed", error="; ".join(info["errors"]))
         return "failed"
@@ -394,7 +394,7 @@ def _finish(out, versions, info, epsilon, issued, store):
     evidence = None
     if top is not None and top.get("cluster_scores") is not None:
         evidence = out / "evidence" / f"{info['sha256'][:32]}-{versions[0]}-{versions[1]}.png"
-        render_evidence(info["path"], issued[top["asset_key"]][-1]["source_path"], top, store, evidence)
+        render_evidence(info["path"], top["original_path"], top, store, evidence)
     regs = [g["registration"] for c in info["checks"] for g in c["groups"]]
     # the accused's registration, else the best one (most overlap) of any candidate
     reg = top["registration"] if top else max(regs, key=lambda r: min(r.get("fitness", 0), r.get("coverage", 0)),

@@ -115,3 +115,25 @@ def test_leftover_temporary_files_are_ignored(world):
     res = _scan(tmp)
     assert res.returncode == 1, res.stdout + res.stderr
     assert _latest(tmp)["found.ply"]["verdict"] == "match"
+
+
+def test_copies_of_an_original_since_revised_stay_attributable_and_never_read_no_match(world):
+    # asset-0 is revised (new bytes, at a new path) and the revision issued to carol; bob's copy of the
+    # first bytes leaks.  Its check must read the first bytes, which the ledger recorded where they still are.
+    tmp, cfg_path = world
+    first = tmp / "assets" / "asset-0.ply"
+    revised = read_points(first).points.copy()
+    revised[:50] *= 1.01
+    write_array(tmp / "revised", "asset-0", revised, "ply")
+    _run(cfg_path, serial=True, sets=[f"catalog.source={tmp / 'revised'}", "recipients=[carol]"])
+    records = [catalogue_record(a) for a in discover_assets(tmp / "revised")]
+    records += [catalogue_record(a) for a in discover_assets(tmp / "assets") if a.key == "asset-1"]
+    write_catalogue(records, tmp / "catalog.parquet")
+    res = _scan(tmp)
+    assert res.returncode == 1, res.stdout + res.stderr
+    assert _latest(tmp)["found.ply"]["verdict"] == "match" and _latest(tmp)["found.ply"]["recipient"] == "bob"
+    first.rename(tmp / "asset-0.ply.gone")                  # the first bytes are nowhere now
+    res = _scan(tmp, SECRET, "--force")
+    assert res.returncode == 3, res.stdout + res.stderr     # failed (and retried), never "no match"
+    row = _latest(tmp)["found.ply"]
+    assert row["verdict"] == "failed" and "cannot be checked" in row["error"] and "asset-0" in row["error"]
