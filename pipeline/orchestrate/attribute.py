@@ -71,22 +71,24 @@ def check_asset(suspect_path, rows, materials, store, detect_params, *, places=(
     -------
     dict
         ``groups`` (one per reference and key id: asset, key id, recipients
-        scored, their best scores, presence p-value, registration) and timings.
+        scored, their best scores, presence p-value, registration, original
+        path), ``unchecked`` (lines from :func:`original_files`: copies whose
+        original no file holds) and timings.
 
     Raises
     ------
     InputError
-        No file holds the bytes some of the copies were issued from (they
-        cannot be checked: never "no match"), or an original cannot be read.
+        An original found cannot be read as a point set.
     ReferenceMismatch
         The rebuilt reference differs from the one recorded at embedding.
     """
-    files = original_files(rows, places)          # before any work: every set of copies can be checked
+    files, unchecked = original_files(rows, places)
     suspect = read_points(suspect_path).points
     originals = {sha: read_points(path).points for sha, path in files.items()}
     by_ref = defaultdict(list)
     for r in rows:
-        by_ref[r["reference_key"]].append(r)
+        if r["source_sha256"] in files:         # the rest are reported in ``unchecked``, never "no match"
+            by_ref[r["reference_key"]].append(r)
     groups, seconds = [], {"registration": 0.0, "estimate": 0.0, "scoring": 0.0}
     for ref_key, ref_rows in sorted(by_ref.items()):
         params = params_from_row(ref_rows[0])
@@ -107,7 +109,7 @@ def check_asset(suspect_path, rows, materials, store, detect_params, *, places=(
                 groups.append({**_score_group(y, ref, params, rows_g, materials[key_id], est["registration"]),
                                "original_path": str(files[sha])})
         seconds["scoring"] += time.perf_counter() - t0
-    return {"asset_key": rows[0]["asset_key"], "groups": groups, "seconds": seconds}
+    return {"asset_key": rows[0]["asset_key"], "groups": groups, "seconds": seconds, "unchecked": unchecked}
 
 
 def original_files(rows, places=()):
@@ -115,38 +117,42 @@ def original_files(rows, places=()):
 
     For each original sha256 of ``rows``, the first of ``places`` and then
     the source paths recorded for those copies (newest first) whose bytes
-    have that hash: an original moved, or replaced by new bytes that were
-    issued in turn, still finds the copies issued from the old ones.
+    have that hash: an original moved, or revised at a new path and issued
+    again, still finds the copies issued from the old bytes.
 
     Returns
     -------
-    dict
+    found : dict
         source sha256 -> path.
-
-    Raises
-    ------
-    InputError
-        No file tried holds the bytes of some copies.
+    unchecked : list of str
+        One line per set of copies whose bytes no file holds (asset, count,
+        sha256, each path tried and why it failed): they cannot be checked.
     """
-    found = {}
+    hashes, found, unchecked = {}, {}, []
     for sha in dict.fromkeys(r["source_sha256"] for r in reversed(rows)):
         mine = [r for r in reversed(rows) if r["source_sha256"] == sha]
         tried = list(dict.fromkeys([*map(str, places), *(r["source_path"] for r in mine)]))
-        hit = next((p for p in tried if _sha256_or_none(p) == sha), None)
-        if hit is None:
-            raise InputError(f"{mine[0]['asset_key']}: the original of {len(mine)} issued cop"
-                             f"{'y' if len(mine) == 1 else 'ies'} (sha256 {sha[:12]}...) is in none of "
-                             f"{', '.join(tried)}: they cannot be checked until a file with those bytes is back "
-                             f"at one of these paths")
-        found[sha] = hit
-    return found
+        for path in tried:
+            if path not in hashes:
+                hashes[path] = _sha256_or_reason(path)
+        hit = next((p for p in tried if hashes[p][0] == sha), None)
+        if hit is not None:
+            found[sha] = hit
+            continue
+        why = "; ".join(f"{p}: {hashes[p][1] or 'other bytes'}" for p in tried)
+        unchecked.append(f"{mine[0]['asset_key']}: {len(mine)} issued cop{'y' if len(mine) == 1 else 'ies'} "
+                         f"cannot be checked, no file holds their original (sha256 {sha[:12]}...) ({why})")
+    return found, unchecked
 
 
-def _sha256_or_none(path):
+def _sha256_or_reason(path):
+    """(the file's sha256, None), or (None, why it cannot be read)."""
     try:
-        return sha256_file(path)
-    except OSError:
-        return None
+        return sha256_file(path), None
+    except FileNotFoundError:
+        return None, "missing"
+    except OSError as exc:
+        return None, exc.strerror or type(exc).__name__
 
 
 def _score_group(y, ref, params, rows, material, registration):

@@ -17,7 +17,7 @@ from ..io.pointcloud import InputError, read_points
 from ..io.secrets import SecretError
 from ..kernels import keys
 from ..kernels.descriptor import d2_descriptor
-from .attribute import check_asset, decide, usable_rows
+from .attribute import check_asset, decide, original_files, usable_rows
 
 __all__ = ["detect_from_ledger", "held_rows", "candidate_groups"]
 
@@ -70,7 +70,7 @@ def _rank(suspect_path, groups, top_k, store):
     if len(groups) == 1:
         return list(groups)
     keys = {f"{asset}@{sha[:16]}": (asset, sha) for asset, sha in groups}
-    paths = {k: groups[g][-1]["source_path"] for k, g in keys.items()}
+    paths = {k: original_files(groups[g])[0].get(g[1], groups[g][-1]["source_path"]) for k, g in keys.items()}
     version = hashlib.sha256("\n".join(sorted(keys)).encode()).hexdigest()[:16]
     index_path = _build_index(store, version, paths)
     indexed = set(_index(index_path).keys) if index_path else set()
@@ -126,6 +126,9 @@ def detect_from_ledger(suspect, ledger_dir, secret, detect_params, *, asset=None
     candidates = _rank(suspect, groups, top_k, store)
     result = _check_in_order(suspect, candidates, groups, materials, store, detect_params)
     checks = result.pop("checks")
+    unchecked = [line for c in checks for line in c["unchecked"]]
+    if unchecked and result["verdict"] != "match":      # never "no match" while copies went unchecked
+        raise InputError(unchecked[0] + (f" (and {len(unchecked) - 1} more)" if len(unchecked) > 1 else ""))
     result.update(suspect=str(suspect), candidates=[c[0] for c in candidates], n_candidates_checked=len(checks),
                   seconds=[c["seconds"] for c in checks], ledger_version=ledger.version())
     return result

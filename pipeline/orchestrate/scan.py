@@ -390,6 +390,11 @@ def _finish(out, versions, info, epsilon, store):
                 note=f"checked {result['n_checked'] - (prev.get('n_checked') or 0)} more recipients; "
                      f"the verdict of {prev['scanned_at']:%Y-%m-%d %H:%M} stands")
         return prev["verdict"]
+    unchecked = [line for c in info["checks"] for line in c.get("unchecked", [])]
+    if unchecked and result["verdict"] != "match":
+        # copies whose original no file holds may be what this is: failed (retried), never "no match"
+        _record(out, versions, info, "failed", error="; ".join(unchecked), n_checked=result["n_checked"])
+        return "failed"
     top = result["accused"][0] if result["accused"] else None
     evidence = None
     if top is not None and top.get("cluster_scores") is not None:

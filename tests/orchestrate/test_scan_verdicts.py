@@ -133,7 +133,13 @@ def test_copies_of_an_original_since_revised_stay_attributable_and_never_read_no
     assert res.returncode == 1, res.stdout + res.stderr
     assert _latest(tmp)["found.ply"]["verdict"] == "match" and _latest(tmp)["found.ply"]["recipient"] == "bob"
     first.rename(tmp / "asset-0.ply.gone")                  # the first bytes are nowhere now
+    carol = read_points(next((tmp / "out" / "marked" / "carol").glob("asset-0*.ply"))).points
+    write_array(tmp / "suspects", "revision", attacks.apply_chain(carol, [("random_similarity", None),
+                                                                          ("shuffle", None)], 3), "ply")
     res = _scan(tmp, SECRET, "--force")
     assert res.returncode == 3, res.stdout + res.stderr     # failed (and retried), never "no match"
     row = _latest(tmp)["found.ply"]
-    assert row["verdict"] == "failed" and "cannot be checked" in row["error"] and "asset-0" in row["error"]
+    assert row["verdict"] == "failed" and row["error"].startswith("asset-0: 2 issued copies cannot be checked")
+    assert "asset-0.ply: missing" in row["error"]
+    # a copy of the bytes at hand is still attributed
+    assert _latest(tmp)["revision.ply"]["verdict"] == "match" and _latest(tmp)["revision.ply"]["recipient"] == "carol"
