@@ -144,6 +144,10 @@ OUTPUT = _section("Where results go; relative paths are relative to the working 
     "bases": _p(("string", "null"), None,
                 "The basis store (clusters, spectral bases, normals by content hash and parameters); "
                 "null: MANIFESTS/bases."),
+    "keep_originals": _p("boolean", True,
+                         "Keep each original's bytes in the basis store (BASES/originals/SHA256.EXT), so the "
+                         "copies issued from them stay attributable after the file is edited, moved or deleted; "
+                         "costs the catalogue's size once per version of an original."),
 })
 
 DASK = _section("The Dask cluster that runs the graph.", {

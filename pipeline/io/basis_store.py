@@ -206,6 +206,17 @@ class BasisStore:
         """Whether the entry holds a file ``name`` (not whether it loads)."""
         return bool(find_file(self.folder, f"{key}/{name}.npz"))
 
+    def keep_original(self, data, sha256, suffix):
+        """Keep an original's bytes (once) as ``originals/SHA256.SUFFIX``; returns where they are."""
+        relative = f"originals/{sha256}{suffix}"
+        found = find_file(self.folder, relative)
+        return found[0] if found else write_file(self.folder, relative, data)
+
+    def kept_original(self, sha256, suffix):
+        """The kept copy of an original's bytes, or None."""
+        found = find_file(self.folder, f"originals/{sha256}{suffix}")
+        return found[0] if found else None
+
     def save_array(self, key, name, array):
         """Any further array of an entry (detection aids: normals, spacing, grams)."""
         self._save(key, name, {"array": np.asarray(array)})

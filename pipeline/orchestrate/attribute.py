@@ -18,9 +18,11 @@ from __future__ import annotations
 import json
 import time
 from collections import defaultdict
+from pathlib import Path
 
 import numpy as np
 
+from ..io.basis_store import BasisStore
 from ..io.pointcloud import InputError, read_points, sha256_file
 from ..kernels import fingerprint
 from ..watermark import WatermarkParams, estimate_differences, fingerprint_length, fingerprint_observation
@@ -82,7 +84,7 @@ def check_asset(suspect_path, rows, materials, store, detect_params, *, places=(
     ReferenceMismatch
         The rebuilt reference differs from the one recorded at embedding.
     """
-    files, unchecked = original_files(rows, places)
+    files, unchecked = original_files(rows, places, store)
     suspect = read_points(suspect_path).points
     originals = {sha: read_points(path).points for sha, path in files.items()}
     by_ref = defaultdict(list)
@@ -112,13 +114,14 @@ def check_asset(suspect_path, rows, materials, store, detect_params, *, places=(
     return {"asset_key": rows[0]["asset_key"], "groups": groups, "seconds": seconds, "unchecked": unchecked}
 
 
-def original_files(rows, places=()):
+def original_files(rows, places=(), store=None):
     """The file holding the bytes each set of copies was issued from.
 
-    For each original sha256 of ``rows``, the first of ``places`` and then
-    the source paths recorded for those copies (newest first) whose bytes
-    have that hash: an original moved, or revised at a new path and issued
-    again, still finds the copies issued from the old bytes.
+    For each original sha256 of ``rows``, the first of ``places``, then of
+    the source paths recorded for those copies (newest first), then of the
+    copy a run kept in the basis store ``store`` (``output.keep_originals``)
+    whose bytes have that hash: an original moved, revised or deleted still
+    finds the copies issued from its old bytes.
 
     Returns
     -------
@@ -131,7 +134,9 @@ def original_files(rows, places=()):
     hashes, found, unchecked = {}, {}, []
     for sha in dict.fromkeys(r["source_sha256"] for r in reversed(rows)):
         mine = [r for r in reversed(rows) if r["source_sha256"] == sha]
-        tried = list(dict.fromkeys([*map(str, places), *(r["source_path"] for r in mine)]))
+        kept = BasisStore(store).kept_original(sha, Path(mine[0]["source_path"]).suffix.lower()) if store else None
+        tried = list(dict.fromkeys([*map(str, places), *(r["source_path"] for r in mine),
+                                    *([str(kept)] if kept else [])]))
         for path in tried:
             if path not in hashes:
                 hashes[path] = _sha256_or_reason(path)

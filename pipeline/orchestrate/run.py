@@ -264,7 +264,7 @@ def _run_serial(job, todo, cfg, progress):
             continue
         try:
             plan = tasks.plan_asset(item.key, item.path, item.source_sha256, job.params, job.store,
-                                    _row_base(job, item)["reference_key"])
+                                    _row_base(job, item)["reference_key"], cfg["output"]["keep_originals"])
             progress.plan_done(len(plan.clusters))
             parts = []
             for i in range(len(plan.clusters)):
@@ -296,7 +296,7 @@ def _run_dask(job, todo, cfg, progress):
                 continue
             fut = client.submit(tasks.plan_asset, item.key, str(item.path), item.source_sha256, job.params,
                                 str(job.store), _row_base(job, item)["reference_key"],
-                                key=f"plan-{job.run_id}-{item.key}", pure=False)
+                                cfg["output"]["keep_originals"], key=f"plan-{job.run_id}-{item.key}", pure=False)
             stage[fut.key] = ("plan", item, None)
             pending.add(fut)
         for fut in pending:

@@ -13,6 +13,7 @@ recipients.
 
 from __future__ import annotations
 
+import hashlib
 import os
 import time
 from dataclasses import dataclass
@@ -68,10 +69,12 @@ def _points(path, source_sha256):
     return cloud
 
 
-def plan_asset(asset_key, path, source_sha256, params, store, store_key):
-    """Load an asset and grow its clusters (or take them from the store)."""
+def plan_asset(asset_key, path, source_sha256, params, store, store_key, keep_original=False):
+    """Load an asset and grow its clusters (or take them from the store); keep its bytes there if asked."""
     t0 = time.perf_counter()
     points = _points(path, source_sha256).points
+    if keep_original:
+        _keep(path, source_sha256, store)
     check_distinct(path, points)          # repeated points: a failed row, as in `pointmark embed`
     try:
         centre, phi, specs = plan_reference(points, params, store, store_key, cluster_points=True)
@@ -79,6 +82,17 @@ def plan_asset(asset_key, path, source_sha256, params, store, store_key):
         raise InputError(f"{path}: {exc}") from None
     return AssetPlan(asset_key, str(path), source_sha256, len(points), centre, phi, specs, str(store),
                      store_key, time.perf_counter() - t0)
+
+
+def _keep(path, source_sha256, store):
+    """The original's bytes into the basis store (once), checked against the hash the run planned with."""
+    suffix = Path(path).suffix.lower()
+    if BasisStore(store).kept_original(source_sha256, suffix) is not None:
+        return
+    data = Path(path).read_bytes()
+    if hashlib.sha256(data).hexdigest() != source_sha256:
+        raise InputError(f"{path}: the file changed while the run was planned (sha256 differs)")
+    BasisStore(store).keep_original(data, source_sha256, suffix)
 
 
 def cluster_task(plan, cluster_pos, params):

@@ -155,12 +155,16 @@ def test_a_read_only_ledger_is_read_and_its_store_gets_a_stand_in(tmp_path):
     assert list(cache.glob("stores/*/state/index-*.npz"))        # the candidate index, in the stand-in
 
 
-def test_copies_whose_original_is_gone_stop_detection_naming_them_never_no_match(tmp_path):
+def test_a_deleted_original_is_read_from_the_copy_the_run_kept_and_without_it_detection_stops(tmp_path):
     src = make_catalogue(tmp_path / "assets", n_assets=1)
     _run(write_config(tmp_path, src), serial=True)
     points = read_points(tmp_path / "out" / "marked" / "bob" / "asset-0.ply").points
     write_array(tmp_path, "found", attacks.apply_chain(points, [("noise", 0.002), ("shuffle", None)], 8), "ply")
+    sha = sha256_file(src / "asset-0.ply")
     (src / "asset-0.ply").rename(tmp_path / "asset-0.ply.gone")
+    res = _cli(tmp_path, "detect", "found.ply", "--ledger", str(tmp_path / "out" / "manifests"), "--json")
+    assert res.returncode == 0 and json.loads(res.stdout)["accused"][0]["recipient"] == "bob", res.stderr
+    (tmp_path / "out" / "manifests" / "bases" / "originals" / f"{sha}.ply").unlink()   # the copy the run kept
     res = _cli(tmp_path, "detect", "found.ply", "--ledger", str(tmp_path / "out" / "manifests"))
     assert res.returncode == 2 and "no match" not in res.stdout.lower(), res.stdout + res.stderr
     lines = res.stderr.strip().splitlines()

@@ -8,7 +8,7 @@ import pytest
 import yaml
 
 from pipeline.io.catalog import catalogue_record, discover_assets, write_catalogue
-from pipeline.io.pointcloud import read_points, write_array
+from pipeline.io.pointcloud import read_points, sha256_file, write_array
 from pipeline.kernels import attacks
 from pipeline.orchestrate.scan import read_scan
 from tests.conftest import ROOT
@@ -132,10 +132,15 @@ def test_copies_of_an_original_since_revised_stay_attributable_and_never_read_no
     res = _scan(tmp)
     assert res.returncode == 1, res.stdout + res.stderr
     assert _latest(tmp)["found.ply"]["verdict"] == "match" and _latest(tmp)["found.ply"]["recipient"] == "bob"
-    first.rename(tmp / "asset-0.ply.gone")                  # the first bytes are nowhere now
+    first.rename(tmp / "asset-0.ply.gone")                  # the first bytes are gone from where they were issued
     carol = read_points(next((tmp / "out" / "marked" / "carol").glob("asset-0*.ply"))).points
     write_array(tmp / "suspects", "revision", attacks.apply_chain(carol, [("random_similarity", None),
                                                                           ("shuffle", None)], 3), "ply")
+    res = _scan(tmp, SECRET, "--force")
+    assert res.returncode == 1, res.stdout + res.stderr     # the run kept them in the basis store
+    assert _latest(tmp)["found.ply"]["recipient"] == "bob" and _latest(tmp)["revision.ply"]["recipient"] == "carol"
+    kept = tmp / "out" / "manifests" / "bases" / "originals" / f"{sha256_file(tmp / 'asset-0.ply.gone')}.ply"
+    kept.unlink()                                           # and now they are nowhere
     res = _scan(tmp, SECRET, "--force")
     assert res.returncode == 3, res.stdout + res.stderr     # failed (and retried), never "no match"
     row = _latest(tmp)["found.ply"]
