@@ -46,14 +46,16 @@ def world(tmp_path):
     return tmp_path, cfg_path
 
 
-def test_a_check_that_raises_is_failed_exit_3_and_retried_with_one_result_file(world):
+def test_a_check_that_cannot_be_made_is_failed_exit_3_and_retried_with_one_result_file(world):
     tmp, _ = world
     cfg = yaml.safe_load((tmp / "scan.yaml").read_text())
     cfg["scan"]["top_k"] = 2      # the other candidate's check completes, as "no match": still failed
     (tmp / "scan.yaml").write_text(yaml.safe_dump(cfg))
     original = tmp / "assets" / "asset-0.ply"
     hidden = tmp / "asset-0.ply.away"
-    original.rename(hidden)                                  # the check cannot read the original
+    kept = tmp / "out" / "manifests" / "bases" / "originals"
+    original.rename(hidden)                                  # the check finds the original nowhere:
+    kept.rename(tmp / "originals.away")                      # not in the catalogue, nor kept by the run
     for _ in range(2):
         res = _scan(tmp)
         assert res.returncode == 3, res.stdout + res.stderr
