@@ -5,6 +5,9 @@ reference (never by its path), so the catalogue run, detection, scans and the
 evaluation share one copy.  An entry is a folder of ``.npy`` files, each
 written atomically: ``meta`` (frame and clusters, from the plan task) and one
 file per cluster (basis, normals, radius, from the parallel cluster tasks).
+With ``output.keep_originals`` the plan task also keeps each original's
+bytes as ``originals/SHA256.EXT``, so its copies stay checkable after the
+catalogue's file is edited, moved or deleted.
 
 A store that cannot be written (a read-only copy of a ledger kept as
 evidence, a scan account without write access) is still read; what it lacks
