@@ -210,10 +210,8 @@ class BasisStore:
         return bool(find_file(self.folder, f"{key}/{name}.npz"))
 
     def keep_original(self, data, sha256, suffix):
-        """Keep an original's bytes (once) as ``originals/SHA256.SUFFIX``; returns where they are."""
-        relative = f"originals/{sha256}{suffix}"
-        found = find_file(self.folder, relative)
-        return found[0] if found else write_file(self.folder, relative, data)
+        """Keep an original's bytes as ``originals/SHA256.SUFFIX`` (see :meth:`kept_original`); returns where."""
+        return write_file(self.folder, f"originals/{sha256}{suffix}", data)
 
     def kept_original(self, sha256, suffix):
         """The kept copy of an original's bytes, or None."""

@@ -70,7 +70,8 @@ def _rank(suspect_path, groups, top_k, store):
     if len(groups) == 1:
         return list(groups)
     keys = {f"{asset}@{sha[:16]}": (asset, sha) for asset, sha in groups}
-    paths = {k: original_files(groups[g], store=store)[0].get(g[1], groups[g][-1]["source_path"]) for k, g in keys.items()}
+    found = {g: original_files(groups[g], store=store)[0] for g in keys.values()}
+    paths = {k: found[g].get(g[1], groups[g][-1]["source_path"]) for k, g in keys.items()}
     version = hashlib.sha256("\n".join(sorted(keys)).encode()).hexdigest()[:16]
     index_path = _build_index(store, version, paths)
     indexed = set(_index(index_path).keys) if index_path else set()
