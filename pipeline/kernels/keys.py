@@ -14,7 +14,7 @@ import hmac
 import numpy as np
 
 __all__ = ["derive_key_material", "key_fingerprint", "new_salt", "pseudo_random_signs", "key_permutation",
-           "recipient_payload", "MIN_SECRET_BYTES"]
+           "recipient_payload", "ledger_mac_key", "row_mac", "MIN_SECRET_BYTES"]
 
 MIN_SECRET_BYTES = 16
 # scrypt cost of the public key fingerprint: about 50 ms per guess on one core
@@ -107,3 +107,41 @@ def recipient_payload(asset_key, recipient, n_bits):
     digest = hashlib.sha256(f"pointmark/payload/{asset_key}/{recipient}".encode("utf-8")).digest()
     value = int.from_bytes(digest, "big") >> (256 - n_bits)
     return format(value, f"0{(n_bits + 3) // 4}x")
+
+
+def ledger_mac_key(secret):
+    """32 bytes that authenticate ledger rows, derived from the master secret (never the secret itself)."""
+    if len(secret) < MIN_SECRET_BYTES:
+        raise ValueError(f"the master secret is {len(secret)} bytes; at least {MIN_SECRET_BYTES} are needed")
+    return hmac.new(secret, b"pointmark/ledger-row-mac/v1", hashlib.sha256).digest()
+
+
+def _canonical(value):
+    if isinstance(value, float):
+        return {"f": value.hex()}           # exact, and NaN/inf safe
+    if isinstance(value, (list, tuple)):
+        return [_canonical(v) for v in value]
+    if hasattr(value, "isoformat"):         # a timestamp
+        return {"t": value.isoformat()}
+    return value
+
+
+def row_mac(mac_key, row, fields):
+    """HMAC-SHA256 (hex) of one ledger row's ``fields``, in a canonical form.
+
+    Parameters
+    ----------
+    mac_key : bytes
+        From :func:`ledger_mac_key`.
+    row : dict
+    fields : sequence of str
+        The columns covered (every column but the MAC itself).
+
+    Returns
+    -------
+    str, 64 hex digits
+    """
+    import json
+
+    body = json.dumps([[f, _canonical(row.get(f))] for f in fields], separators=(",", ":"), ensure_ascii=True)
+    return hmac.new(mac_key, body.encode("ascii"), hashlib.sha256).hexdigest()
