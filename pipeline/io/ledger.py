@@ -4,12 +4,23 @@ Layout of a ledger folder::
 
     deployment.json          the deployment's public salt (created once)
     copies/part-*.parquet    rows, each file written once under a fresh name
+    intents/*.json           copies a run is about to publish (removed once published)
     locks/                   one flock per asset, held by the run issuing it
     bases/                   the default basis store (see basis_store.py)
 
-Nothing here is ever rewritten or deleted: reruns, new recipients, new
-parameters, keys and tool versions add part files.  Readers take the union
-of all part files (``pyarrow.dataset``), ignoring temporary files.
+Nothing in ``copies/`` is ever rewritten or deleted: reruns, new recipients,
+new parameters, keys and tool versions add part files.  Readers take the
+union of all part files, ignoring temporary files.  Each row carries
+``row_mac``, an HMAC under a key derived from the master secret
+(:func:`pipeline.kernels.keys.ledger_mac_key`) over every other column, so a
+row added or altered by anyone without the secret is recognised.
+
+A copy is published only after its row is durable: the issue task writes it
+under a pending name, the run appends the rows (written, flushed and synced),
+then links each pending file to its final name.  Before issuing, the run
+writes an intent file listing the copies it will publish; a run that finds
+an intent of an asset it holds finishes it (publishes a pending copy whose
+row records its sha256) or removes the pending copy (no row holds it).
 """
 
 from __future__ import annotations
@@ -20,6 +31,7 @@ import hashlib
 import io
 import json
 import os
+import re
 import sys
 import uuid
 from datetime import datetime, timezone
@@ -29,9 +41,9 @@ import pyarrow as pa
 import pyarrow.dataset as ds
 import pyarrow.parquet as pq
 
-__all__ = ["LEDGER_SCHEMA", "LEDGER_VERSION", "Ledger", "LedgerError"]
+__all__ = ["LEDGER_SCHEMA", "LEDGER_VERSION", "MAC_FIELDS", "Ledger", "LedgerError"]
 
-LEDGER_VERSION = 2
+LEDGER_VERSION = 3   # 3: row_mac
 
 LEDGER_SCHEMA = pa.schema([
     ("schema_version", pa.int16()),
@@ -78,7 +90,13 @@ LEDGER_SCHEMA = pa.schema([
     ("error", pa.string()),
     ("tool_version", pa.string()),
     ("created_at", pa.timestamp("ms", tz="UTC")),
+    ("row_mac", pa.string()),
 ])
+
+# the columns a row's MAC covers: all of them but the MAC
+MAC_FIELDS = tuple(n for n in LEDGER_SCHEMA.names if n != "row_mac")
+_HEX = {"key_salt": re.compile(r"[0-9a-f]{32}"), "source_sha256": re.compile(r"[0-9a-f]{64}"),
+        "output_sha256": re.compile(r"[0-9a-f]{64}"), "key_fingerprint": re.compile(r"[0-9a-f]{16}")}
 
 
 class LedgerError(RuntimeError):
@@ -98,27 +116,47 @@ class Ledger:
         self.copies = self.folder / "copies"
 
     # -- the deployment salt ------------------------------------------------
-    def salt(self, create=False):
-        """The deployment's public salt (hex), created once with ``create``; None if absent."""
+    def salt(self):
+        """The deployment's public salt (hex); None if the ledger is new.
+
+        Raises
+        ------
+        LedgerError
+            ``deployment.json`` is missing while the ledger holds rows (it is
+            never recreated silently: a new salt would start a new generation
+            of every asset), or it is not a deployment file.
+        """
         path = self.folder / "deployment.json"
         if path.is_file():
             try:
-                return json.loads(path.read_text())["salt"]
-            except (ValueError, KeyError) as exc:
-                raise LedgerError(f"{path}: not a deployment file ({exc})") from None
-        if not create:
-            return None
-        from ..kernels.keys import new_salt
+                salt = json.loads(path.read_text())["salt"]
+            except (ValueError, KeyError, TypeError, UnicodeDecodeError) as exc:
+                raise LedgerError(f"{path}: not a deployment file ({type(exc).__name__})") from None
+            if not isinstance(salt, str) or not _HEX["key_salt"].fullmatch(salt):
+                raise LedgerError(f"{path}: its salt is not 32 hex digits")
+            return salt
+        if self.parts():
+            salts = sorted({r["key_salt"] for r in self.rows(status=None)})
+            hint = (f"restore it with: echo '{{\"salt\": \"{salts[0]}\"}}' > {path}" if len(salts) == 1
+                    else f"the rows hold {len(salts)} salts ({', '.join(salts)}): restore it from a backup")
+            raise LedgerError(f"{path}: missing, though the ledger holds issued rows; {hint} "
+                              f"(the salt is public and recorded in every row)")
+        return None
 
+    def create_salt(self, salt):
+        """Record ``salt`` as the deployment's (once); returns the salt in force (another run's if it won)."""
+        path = self.folder / "deployment.json"
         self.folder.mkdir(parents=True, exist_ok=True)
         tmp = self.folder / f".deployment.{uuid.uuid4().hex}.tmp"
-        tmp.write_text(json.dumps({"salt": new_salt(), "created_at": _now().isoformat()}) + "\n")
-        try:  # a hard link is atomic and exclusive: two first runs agree on one salt, and no
-            os.link(tmp, path)       # reader ever sees the file before its contents
-        except FileExistsError:
-            pass
+        try:
+            _write_durable(tmp, (json.dumps({"salt": salt, "created_at": _now().isoformat()}) + "\n").encode())
+            try:  # a hard link is atomic and exclusive: two first runs agree on one salt, and no
+                os.link(tmp, path)       # reader ever sees the file before its contents
+            except FileExistsError:
+                pass
         finally:
             tmp.unlink(missing_ok=True)
+        _sync_folder(self.folder)
         return self.salt()
 
     # -- rows ---------------------------------------------------------------
@@ -133,45 +171,86 @@ class Ledger:
         names = "\n".join(p.name for p in self.parts())
         return hashlib.sha256(names.encode()).hexdigest()[:16]
 
-    def table(self):
-        """Every row as one pyarrow Table (``LEDGER_SCHEMA``)."""
-        parts = self.parts()
-        if not parts:
-            return LEDGER_SCHEMA.empty_table()
-        try:
-            return ds.dataset([str(p) for p in parts], schema=LEDGER_SCHEMA, format="parquet").to_table()
-        except (OSError, pa.ArrowInvalid) as exc:
-            raise LedgerError(f"{self.copies}: unreadable ledger part: {exc}") from None
-
     def rows(self, status="ok", asset_key=None):
-        """Rows as dicts (each with ``ledger_part``, its file's name), optionally one status and asset."""
+        """Rows as dicts (each with ``ledger_part``, its file's name), optionally one status and asset.
+
+        Raises
+        ------
+        LedgerError
+            A part file that is not a ledger part (unreadable, another schema,
+            or a row whose salt or hashes are not hex), named with the row.
+        """
         out = []
         for part in self.parts():
-            try:
-                rows = pq.read_table(part, schema=LEDGER_SCHEMA).to_pylist()
-            except (OSError, pa.ArrowInvalid) as exc:
-                raise LedgerError(f"{part}: unreadable ledger part: {exc}") from None
-            out += [{**r, "ledger_part": part.name} for r in rows
-                    if (status is None or r["status"] == status) and (asset_key is None or r["asset_key"] == asset_key)]
+            for r in _read_part(part):
+                if (status is None or r["status"] == status) and (asset_key is None or r["asset_key"] == asset_key):
+                    out.append({**r, "ledger_part": part.name})
         return out
 
-    def append(self, rows):
-        """Write rows as a new part file (never an existing name); returns its path."""
+    def append(self, rows, mac_key=None):
+        """Write rows as a new part file (never an existing name), durably; returns its path.
+
+        Parameters
+        ----------
+        rows : list of dict
+        mac_key : bytes, optional
+            From :func:`pipeline.kernels.keys.ledger_mac_key`: each row gets its
+            ``row_mac`` over :data:`MAC_FIELDS`, computed on the values as a
+            reader gets them back.
+        """
         if not rows:
             return None
+        from ..kernels.keys import row_mac
+
         stamp = _now()
-        filled = [{**{n: None for n in LEDGER_SCHEMA.names}, **r, "schema_version": LEDGER_VERSION,
-                   "created_at": r.get("created_at") or stamp} for r in rows]
+        filled = [{**{n: None for n in LEDGER_SCHEMA.names}, **{k: v for k, v in r.items() if k in LEDGER_SCHEMA.names},
+                   "schema_version": LEDGER_VERSION, "created_at": r.get("created_at") or stamp, "row_mac": None}
+                  for r in rows]
+        table = pa.Table.from_pylist(filled, schema=LEDGER_SCHEMA)
+        if mac_key is not None:
+            macs = [row_mac(mac_key, r, MAC_FIELDS) for r in table.to_pylist()]
+            table = table.set_column(LEDGER_SCHEMA.get_field_index("row_mac"), LEDGER_SCHEMA.field("row_mac"),
+                                     pa.array(macs, pa.string()))
         buf = io.BytesIO()
-        pq.write_table(pa.Table.from_pylist(filled, schema=LEDGER_SCHEMA), buf)
+        pq.write_table(table, buf)
         self.copies.mkdir(parents=True, exist_ok=True)
         name = f"part-{stamp.strftime('%Y%m%dT%H%M%S')}-{uuid.uuid4().hex[:12]}.parquet"
         tmp = self.copies / f".{name}.tmp"
-        tmp.write_bytes(buf.getvalue())
         final = self.copies / name
-        os.link(tmp, final)          # fails rather than replace an existing part
-        tmp.unlink()
+        try:
+            _write_durable(tmp, buf.getvalue())
+            os.link(tmp, final)          # fails rather than replace an existing part
+        finally:
+            tmp.unlink(missing_ok=True)
+        _sync_folder(self.copies)
         return final
+
+    # -- copies about to be published ----------------------------------------
+    def write_intent(self, asset_key, run_id, paths):
+        """Record, before issuing, the final paths of the copies a run will publish for an asset."""
+        folder = self.folder / "intents"
+        folder.mkdir(parents=True, exist_ok=True)
+        path = folder / f"{_asset_tag(asset_key)}.{run_id}.json"
+        tmp = folder / f".{path.name}.tmp"
+        try:
+            _write_durable(tmp, json.dumps({"asset_key": asset_key, "paths": [str(p) for p in paths]}).encode())
+            os.replace(tmp, path)
+        finally:
+            tmp.unlink(missing_ok=True)
+        return path
+
+    def intents(self, asset_key):
+        """(intent file, final paths) of every unfinished intent of an asset."""
+        folder = self.folder / "intents"
+        out = []
+        for path in sorted(folder.glob(f"{_asset_tag(asset_key)}.*.json")) if folder.is_dir() else []:
+            try:
+                record = json.loads(path.read_text())
+            except (ValueError, UnicodeDecodeError):
+                continue             # not written whole: its copies were never written either
+            if record.get("asset_key") == asset_key:
+                out.append((path, [Path(p) for p in record.get("paths", [])]))
+        return out
 
     # -- concurrency --------------------------------------------------------
     @contextlib.contextmanager
@@ -185,8 +264,7 @@ class Ledger:
         folder.mkdir(parents=True, exist_ok=True)
         with contextlib.ExitStack() as stack:
             for key in sorted(set(asset_keys)):
-                name = hashlib.sha256(key.encode()).hexdigest()[:24]
-                stack.enter_context(_flock(folder / f"{name}.lock"))
+                stack.enter_context(_flock(folder / f"{_asset_tag(key)}.lock"))
             yield self
 
 
@@ -202,6 +280,49 @@ def _flock(path):
             yield
         finally:
             fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def _asset_tag(key):
+    return hashlib.sha256(key.encode()).hexdigest()[:24]
+
+
+def _read_part(part):
+    """The rows of one part file, checked to be ledger rows."""
+    try:
+        rows = pq.read_table(part, schema=LEDGER_SCHEMA).to_pylist()
+    except (OSError, pa.ArrowException, ValueError, TypeError) as exc:
+        raise LedgerError(f"{part}: not a ledger part ({type(exc).__name__}): "
+                          f"a foreign or damaged file in the ledger; move it out to continue") from None
+    for i, r in enumerate(rows):
+        for name, pattern in _HEX.items():      # a failed row may lack its hashes
+            value = r[name]
+            if not (r["status"] != "ok" and not value) and not (isinstance(value, str) and pattern.fullmatch(value)):
+                raise LedgerError(f"{part}: row {i}: {name} is not hex of the right length: a foreign or "
+                                  f"altered part file; move it out to continue")
+        if not all(isinstance(r[n], str) and r[n] for n in ("asset_key", "recipient", "key_id", "status")):
+            raise LedgerError(f"{part}: row {i}: asset_key, recipient, key_id or status is empty: a foreign "
+                              f"or altered part file; move it out to continue")
+    return rows
+
+
+def _write_durable(path, data):
+    """Write bytes to a new file and sync them to disk."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+    try:
+        view = memoryview(data)
+        while view:
+            view = view[os.write(fd, view):]
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _sync_folder(folder):
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def _now():

@@ -11,6 +11,14 @@ generation of the asset (new file names, new rows); earlier rows stay.
 Each asset is locked while it is planned and issued, and the plan is
 redone under the locks, so concurrent runs never issue the same copy twice
 or lose a row.
+
+Every check comes before any write: the catalogue, recipients, output
+folders (never inside an input, never holding an asset), planned copy paths
+(each distinct from every other planned or recorded one) and the Dask
+scheduler.  Only then are the ledger folder, its salt and locks created.
+A copy is published under its final name only after its row is durable
+(see :mod:`pipeline.io.ledger`); an interrupted run's intents are finished
+or undone by the next run of the same assets.
 """
 
 from __future__ import annotations
@@ -29,7 +37,8 @@ from ..config import ConfigError, watermark_params
 from ..io.basis_store import BasisStore
 from ..io.catalog import check_recipient, discover_assets
 from ..io.ledger import Ledger
-from ..io.pointcloud import sha256_file
+from ..io.paths import check_apart, copy_path, pending_path, source_folders
+from ..io.pointcloud import InputError, sha256_file
 from ..io.secrets import without_secret_env
 from ..kernels import keys
 from ..watermark import params_record
@@ -71,6 +80,8 @@ class Job:
     key_fingerprint: str
     key_salt: str
     material: bytes = field(repr=False)
+    mac_key: bytes = field(default=b"", repr=False)     # authenticates ledger rows; never sent to workers
+    new_salt: bool = False                              # the salt is this run's: recorded when it starts
     params: object = None
     ledger: Ledger = None
     store: Path = None
@@ -110,7 +121,7 @@ def recipients_of(asset, configured, where):
 
 
 def plan_job(cfg, secret, *, force=False, shard=None, create=True):
-    """Everything the run will do, without doing it.
+    """Everything the run will do, without doing it, and without writing anything.
 
     Parameters
     ----------
@@ -122,11 +133,17 @@ def plan_job(cfg, secret, *, force=False, shard=None, create=True):
     shard : (int, int), optional
         (i, n): only assets i, i + n, i + 2n, ... (sorted by key).
     create : bool
-        Create the ledger's deployment salt if missing (False for a dry run).
+        Unused (kept for callers): a plan never writes; :func:`run_job`
+        records a new ledger's salt.
 
     Returns
     -------
     Job
+
+    Raises
+    ------
+    InputError, ConfigError, LedgerError
+        A check failed; nothing was written.
     """
     params = watermark_params(cfg)
     key_id = cfg["key"]["id"]
@@ -134,31 +151,39 @@ def plan_job(cfg, secret, *, force=False, shard=None, create=True):
         raise ConfigError("config: key.id: a key id is needed for a catalogue run")
     if not cfg["catalog"]["source"]:
         raise ConfigError("config: catalog.source: name a folder, glob or catalogue file")
-    ledger = Ledger(cfg["output"]["manifests"])
+    out = cfg["output"]
+    all_assets = discover_assets(cfg["catalog"]["source"])
+    store = Path(out["bases"] or Path(out["manifests"]) / "bases")
+    check_apart([("output.dir", out["dir"]), ("output.manifests", out["manifests"]), ("output.bases", store)],
+                [("catalogue folder", f) for f in source_folders(cfg["catalog"]["source"],
+                                                                 [a.path for a in all_assets])],
+                [a.path for a in all_assets])
+    ledger = Ledger(out["manifests"])
     version = ledger.version()
-    salt = ledger.salt(create=create) or "0" * 32
+    salt = ledger.salt()
+    new_salt = salt is None
+    salt = salt or keys.new_salt()
     fingerprint = keys.key_fingerprint(secret, salt)
-    store = Path(cfg["output"]["bases"] or ledger.folder / "bases")
-    job = Job(uuid.uuid4().hex[:16], key_id, fingerprint, salt, keys.derive_key_material(secret, key_id), params,
-              ledger, store, ledger_version=version)
-    job.replan = lambda: plan_job(cfg, secret, force=force, shard=shard, create=create)
-    assets = discover_assets(cfg["catalog"]["source"])
-    if shard is not None:
-        assets = assets[shard[0]::shard[1]]
+    job = Job(uuid.uuid4().hex[:16], key_id, fingerprint, salt, keys.derive_key_material(secret, key_id),
+              keys.ledger_mac_key(secret), new_salt, params, ledger, store, ledger_version=version)
+    job.replan = lambda: plan_job(cfg, secret, force=force, shard=shard)
+    assets = all_assets[shard[0]::shard[1]] if shard is not None else all_assets
+    recorded = ledger.rows(status=None)
     issued = {}
-    for row in ledger.rows():
-        issued.setdefault(row["asset_key"], []).append(row)
+    for row in recorded:
+        if row["status"] == "ok":
+            issued.setdefault(row["asset_key"], []).append(row)
     for asset in assets:
         recipients = recipients_of(asset, cfg["recipients"], cfg["catalog"]["source"])
-        job.assets.append(_plan_asset(job, asset, recipients, issued.get(asset.key, []), Path(cfg["output"]["dir"]),
-                                      force))
+        job.assets.append(_plan_asset(job, asset, recipients, issued.get(asset.key, []), Path(out["dir"]), force))
+    _check_copy_paths(job, recorded)
     return job
 
 
 def _plan_asset(job, asset, recipients, rows, out_dir, force):
     item = AssetJob(asset.key, asset.path, "")
-    if not asset.path.is_file():
-        item.error = f"{asset.path}: no such file"
+    if asset.error or not asset.path.is_file():      # a link out of the catalogue folder is not read
+        item.error = asset.error or f"{asset.path}: no such file"
         item.items = [(r, None) for r in recipients]
         return item
     item.source_sha256 = sha256_file(asset.path)
@@ -168,11 +193,33 @@ def _plan_asset(job, asset, recipients, rows, out_dir, force):
     done = {r["recipient"] for r in same}
     item.issued = len(done)
     item.missing = sorted({r["recipient"] for r in same if not Path(r["output_path"]).is_file()})
-    suffix = asset.path.suffix.lower()
-    name = asset.key if item.generation == 1 else f"{asset.key}.g{item.generation}"
     redo = set(item.missing) if force else set()
-    item.items = [(r, out_dir.resolve() / r / f"{name}{suffix}") for r in recipients if r not in done or r in redo]
+    item.items = [(r, copy_path(out_dir.resolve(), r, asset.key, item.generation, asset.path.suffix.lower()))
+                  for r in recipients if r not in done or r in redo]
     return item
+
+
+def _check_copy_paths(job, recorded):
+    """Refuse planned copy paths that equal another planned or recorded one, or an unrecorded file."""
+    owner = {}
+    for r in recorded:
+        if r["output_path"] and r["status"] == "ok":
+            owner.setdefault(str(r["output_path"]), (r["asset_key"], r["generation"], r["recipient"]))
+    planned = {}
+    for item in job.assets:
+        for recipient, path in item.items:
+            if path is None:
+                continue
+            me, text = (item.key, item.generation, recipient), str(path)
+            other = planned.get(text) or (owner.get(text) if owner.get(text) != me else None)
+            if other is not None:
+                raise InputError(f"{path}: planned for {item.key} (generation {item.generation}, {recipient}) "
+                                 f"but also the copy of {other[0]} (generation {other[1]}, {other[2]}); "
+                                 f"rename one of the assets")
+            if text not in owner and (path.exists() or path.is_symlink()):
+                raise InputError(f"{path}: exists, and no ledger row records it as an issued copy; move it "
+                                 f"away (it may be a copy of an interrupted older run) and run again")
+            planned[text] = me
 
 
 def _row_base(job, item):
@@ -226,34 +273,113 @@ def start_client(cfg):
 def run_job(job, cfg, *, serial=False, progress=None):
     """Execute a planned job under the assets' locks; append one ledger part per asset.
 
+    The Dask scheduler is reached before anything is written; then the
+    ledger's salt (for a new ledger) and locks are created, interrupted
+    intents of the assets are finished, and the copies are issued.
+
     Returns
     -------
     dict
         Counts of assets: ok, failed, skipped (nothing to issue).
     """
-    with job.ledger.lock([a.key for a in job.assets]):
-        if job.replan is not None and job.ledger.version() != job.ledger_version:
-            job = job.replan()          # another run added rows since this one was planned
-        job.ledger.salt(create=True)
-        progress = progress or Progress.for_stream(cfg["dask"]["progress"], sys.stderr)
-        todo = job.todo
-        progress.start(len(todo), job.params.n_clusters)
-        results = (_run_serial if serial else _run_dask)(job, todo, cfg, progress)
-        progress.finish()
+    client, cluster = (None, None) if serial else start_client(cfg)
+    try:
+        with job.ledger.lock([a.key for a in job.assets]):
+            if job.new_salt and job.ledger.create_salt(job.key_salt) != job.key_salt:
+                job = job.replan()      # another first run recorded its salt first
+            if _recover(job) or (job.replan is not None and job.ledger.version() != job.ledger_version):
+                job = job.replan()      # another run added rows, or an interrupted one was finished
+            progress = progress or Progress.for_stream(cfg["dask"]["progress"], sys.stderr)
+            todo = job.todo
+            progress.start(len(todo), job.params.n_clusters)
+            results = _run_serial(job, todo, cfg, progress) if serial else _run_dask(job, todo, cfg, progress, client)
+            progress.finish()
+    finally:
+        if client is not None:
+            client.close()
+        if cluster is not None:
+            cluster.close()
     counts = {"ok": 0, "failed": 0, "skipped": len(job.assets) - len(todo)}
     for item in todo:
         counts["ok" if all(r["status"] == "ok" for r in results[item.key]) else "failed"] += 1
     return counts
 
 
+def _recover(job):
+    """Finish or undo the intents an interrupted run left for the job's assets; True if any was found.
+
+    A pending copy whose row is in the ledger, with the sha256 the row
+    records, is published; any other pending copy is removed.
+    """
+    found = False
+    for item in job.assets:
+        intents = job.ledger.intents(item.key)
+        if not intents:
+            continue
+        found = True
+        rows = {str(r["output_path"]): r for r in job.ledger.rows(asset_key=item.key)}
+        for intent, paths in intents:
+            for final in paths:
+                _settle(final, rows.get(str(final)))
+            intent.unlink(missing_ok=True)
+    return found
+
+
+def _settle(final, row):
+    pending = pending_path(final)
+    if not pending.is_file():
+        return
+    if row is not None and not final.exists() and sha256_file(pending) == row["output_sha256"]:
+        os.link(pending, final)
+        log.warning("published %s, issued by an interrupted run", final)
+    pending.unlink()
+
+
 def _chunks(items):
     return [items[a:a + CHUNK] for a in range(0, len(items), CHUNK)]
 
 
+def _start_asset(job, item):
+    """Record the copies the asset's issue tasks will write, before any is written."""
+    job.ledger.write_intent(item.key, job.run_id, [o for _, o in item.items if o is not None])
+
+
 def _finish_asset(job, item, rows, results, progress):
+    """Append the asset's rows durably, then publish its copies; a ledger that cannot be written fails them."""
+    pending = {r["output_path"]: r.pop("pending_path", None) for r in rows}
+    try:
+        job.ledger.append(rows, mac_key=job.mac_key)
+    except OSError as exc:
+        error = f"{job.ledger.copies}: the ledger could not be written ({exc.strerror or exc}); nothing issued"
+        print(f"[pointmark] {item.key}: {error}", file=sys.stderr, flush=True)
+        for path in pending.values():
+            if path:
+                Path(path).unlink(missing_ok=True)
+        rows = _failed_rows(job, item, error)
+    else:
+        for row in rows:
+            path = pending.get(row["output_path"])
+            if row["status"] == "ok" and path:
+                _publish(Path(path), Path(row["output_path"]))
+    errors = sorted({r["error"] for r in rows if r["status"] != "ok" and r.get("error")})
+    if errors:
+        print(f"[pointmark] {item.key}: {sum(r['status'] != 'ok' for r in rows)} failed: {errors[0]}",
+              file=sys.stderr, flush=True)
+    for _, out in item.items:           # what was written but not issued goes
+        if out is not None:
+            pending_path(out).unlink(missing_ok=True)
+    for intent, _ in job.ledger.intents(item.key):
+        if intent.name.endswith(f".{job.run_id}.json"):
+            intent.unlink(missing_ok=True)
     results[item.key] = rows
-    job.ledger.append(rows)
     progress.asset_done()
+
+
+def _publish(pending, final):
+    """Link a checked pending copy to its final name (never over another file)."""
+    final.parent.mkdir(parents=True, exist_ok=True)
+    os.link(pending, final)
+    pending.unlink()
 
 
 def _run_serial(job, todo, cfg, progress):
@@ -262,6 +388,7 @@ def _run_serial(job, todo, cfg, progress):
         if item.error:
             _finish_asset(job, item, _failed_rows(job, item, item.error), results, progress)
             continue
+        _start_asset(job, item)
         try:
             plan = tasks.plan_asset(item.key, item.path, item.source_sha256, job.params, job.store,
                                     _row_base(job, item)["reference_key"], cfg["output"]["keep_originals"])
@@ -283,51 +410,46 @@ def _run_serial(job, todo, cfg, progress):
     return results
 
 
-def _run_dask(job, todo, cfg, progress):
+def _run_dask(job, todo, cfg, progress, client):
     from distributed import as_completed
 
     results, stage, open_chunks, rows = {}, {}, {}, {}
-    client, cluster = start_client(cfg)
-    try:
-        pending = as_completed([], with_results=False)
-        for item in todo:
-            if item.error:
-                _finish_asset(job, item, _failed_rows(job, item, item.error), results, progress)
-                continue
-            fut = client.submit(tasks.plan_asset, item.key, str(item.path), item.source_sha256, job.params,
-                                str(job.store), _row_base(job, item)["reference_key"],
-                                cfg["output"]["keep_originals"], key=f"plan-{job.run_id}-{item.key}", pure=False)
-            stage[fut.key] = ("plan", item, None)
-            pending.add(fut)
-        for fut in pending:
-            kind, item, chunk = stage.pop(fut.key)
-            if kind == "plan" and fut.status != "finished":
-                _finish_asset(job, item, _failed_rows(job, item, _error_text(fut.exception())), results, progress)
-            elif kind == "plan":
-                n = len(fut.result().clusters)
-                progress.plan_done(n)
-                parts = [client.submit(tasks.cluster_task, fut, i, job.params, pure=False,
-                                       key=f"cluster-{job.run_id}-{item.key}-{i}") for i in range(n)]
-                for part in parts:
-                    stage[part.key] = ("cluster", item, None)
-                    pending.add(part)
-                chunks = _chunks(item.items)
-                open_chunks[item.key], rows[item.key] = len(chunks), []
-                for c, chunk in enumerate(chunks):
-                    done = client.submit(tasks.issue_task, fut, parts, job.material, chunk, job.params,
-                                         _row_base(job, item), key=f"issue-{job.run_id}-{item.key}-{c}", pure=False)
-                    stage[done.key] = ("issue", item, chunk)
-                    pending.add(done)
-            elif kind == "cluster":
-                progress.cluster_done()
-            else:
-                ok = fut.status == "finished"
-                rows[item.key] += fut.result() if ok else _failed_rows(job, item, _error_text(fut.exception()), chunk)
-                open_chunks[item.key] -= 1
-                if open_chunks[item.key] == 0:
-                    _finish_asset(job, item, rows.pop(item.key), results, progress)
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+    pending = as_completed([], with_results=False)
+    for item in todo:
+        if item.error:
+            _finish_asset(job, item, _failed_rows(job, item, item.error), results, progress)
+            continue
+        _start_asset(job, item)
+        fut = client.submit(tasks.plan_asset, item.key, str(item.path), item.source_sha256, job.params,
+                            str(job.store), _row_base(job, item)["reference_key"],
+                            cfg["output"]["keep_originals"], key=f"plan-{job.run_id}-{item.key}", pure=False)
+        stage[fut.key] = ("plan", item, None)
+        pending.add(fut)
+    for fut in pending:
+        kind, item, chunk = stage.pop(fut.key)
+        if kind == "plan" and fut.status != "finished":
+            _finish_asset(job, item, _failed_rows(job, item, _error_text(fut.exception())), results, progress)
+        elif kind == "plan":
+            n = len(fut.result().clusters)
+            progress.plan_done(n)
+            parts = [client.submit(tasks.cluster_task, fut, i, job.params, pure=False,
+                                   key=f"cluster-{job.run_id}-{item.key}-{i}") for i in range(n)]
+            for part in parts:
+                stage[part.key] = ("cluster", item, None)
+                pending.add(part)
+            chunks = _chunks(item.items)
+            open_chunks[item.key], rows[item.key] = len(chunks), []
+            for c, chunk in enumerate(chunks):
+                done = client.submit(tasks.issue_task, fut, parts, job.material, chunk, job.params,
+                                     _row_base(job, item), key=f"issue-{job.run_id}-{item.key}-{c}", pure=False)
+                stage[done.key] = ("issue", item, chunk)
+                pending.add(done)
+        elif kind == "cluster":
+            progress.cluster_done()
+        else:
+            ok = fut.status == "finished"
+            rows[item.key] += fut.result() if ok else _failed_rows(job, item, _error_text(fut.exception()), chunk)
+            open_chunks[item.key] -= 1
+            if open_chunks[item.key] == 0:
+                _finish_asset(job, item, rows.pop(item.key), results, progress)
     return results

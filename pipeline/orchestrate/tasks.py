@@ -14,7 +14,6 @@ recipients.
 from __future__ import annotations
 
 import hashlib
-import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,6 +23,7 @@ import numpy as np
 from .. import __version__
 from ..io.pointcloud import InputError, check_distinct, read_coordinates, read_points, sha256_file, write_points
 from ..io.basis_store import BasisStore
+from ..io.paths import pending_path
 from ..io.scratch import Scratch
 from ..kernels import clustering, digest, fingerprint
 from ..kernels import distortion as surface_measures
@@ -31,7 +31,8 @@ from ..watermark import WatermarkError, cluster_fingerprint, distortion, fingerp
 from .reference import (MissingClusterPoints, cluster_points_name, cluster_reference, plan_reference,
                         verified_clusters)
 
-__all__ = ["AssetPlan", "plan_asset", "cluster_task", "issue_task", "CopyIntegrityError", "copy_label"]
+__all__ = ["AssetPlan", "plan_asset", "cluster_task", "issue_task", "CopyIntegrityError", "copy_label",
+           "realized_ratio", "MIN_REALIZED"]
 
 # an issued copy must keep at least this share of its displacement at the file's precision
 MIN_REALIZED = 0.5
@@ -159,11 +160,16 @@ def issue_task(plan, cluster_results, material, items, params, row_base):
     copies = _marked_copies(points, centre, phi, specs, chips, params, plan, recorded,
                             Path(items[0][1]).parent if items else Path(plan.store))
     rows = []
-    for (recipient, out), copy in zip(items, copies):
-        row, written = _publish(cloud, points, copy, Path(out))
-        del copy                       # the copy as intended is not needed for the measures
-        rows.append({**shared, "recipient": recipient, **row, **measure(written), "status": "ok", "error": None})
-        del written
+    try:
+        for (recipient, out), copy in zip(items, copies):
+            row, written = _write_pending(cloud, points, copy, Path(out))
+            del copy                       # the copy as intended is not needed for the measures
+            rows.append({**shared, "recipient": recipient, **row, **measure(written), "status": "ok", "error": None})
+            del written
+    except BaseException:
+        for row in rows:                   # nothing of a failed chunk is left to publish
+            Path(row["pending_path"]).unlink(missing_ok=True)
+        raise
     for row in rows:       # the bases are read once for all the task's copies: its mean time per copy
         row["seconds_copy"] = (time.perf_counter() - t0) / len(rows)
     return rows
@@ -220,31 +226,36 @@ def _distortion_measure(points, params):
     return lambda written: distortion(points, written, cells=cells)
 
 
-def _publish(cloud, points, marked, out):
-    """Write one copy under a pending name, check what the file holds, then rename it into place.
+def _write_pending(cloud, points, marked, out):
+    """Write one copy under its pending name and check what the file holds.
+
+    The copy is published (linked to ``out``) by the run once its ledger row
+    is durable.
 
     Returns
     -------
-    row : dict (output path, sha256, realized ratio)
+    row : dict (output path, pending path, sha256, realized ratio)
     written : (n, 3) float, the coordinates the file holds
     """
-    pending = out.with_name(f".{out.stem}.pending{out.suffix}")
-    write_points(cloud, marked, pending)      # published only once it is checked
+    pending = pending_path(out)
+    write_points(cloud, marked, pending)
     try:
         written = read_coordinates(pending)
-        ratio = _realized_ratio(points, marked, written, out)
+        ratio = realized_ratio(points, marked, written, out)
     except Exception:
         pending.unlink(missing_ok=True)
         raise
-    os.replace(pending, out)
-    return {"output_path": str(out), "output_sha256": sha256_file(out), "realized_ratio": ratio}, written
+    return {"output_path": str(out), "pending_path": str(pending), "output_sha256": sha256_file(pending),
+            "realized_ratio": ratio}, written
 
 
-def _realized_ratio(original, intended, written, out):
+def realized_ratio(original, intended, written, out):
     """Share of the intended displacement the written file keeps; refuses unmarked copies."""
     energy = overlap = moved = 0.0
     for a in range(0, len(original), 1 << 20):       # in blocks: no full-size temporaries
         want = intended[a:a + (1 << 20)] - original[a:a + (1 << 20)]
+        # motion within a few float64 steps of the coordinates is round-off, not a mark (a 1e-300 cap)
+        want[np.abs(want) <= 8 * np.spacing(np.abs(original[a:a + (1 << 20)]).max())] = 0.0
         got = written[a:a + (1 << 20)] - original[a:a + (1 << 20)]
         energy += float((want**2).sum())
         overlap += float((want * got).sum())

@@ -3,6 +3,7 @@
 import threading
 
 from pipeline.io.ledger import Ledger
+from pipeline.kernels.keys import new_salt
 
 
 def test_concurrent_first_runs_agree_on_one_salt_and_never_read_a_partial_file(tmp_path):
@@ -14,7 +15,7 @@ def test_concurrent_first_runs_agree_on_one_salt_and_never_read_a_partial_file(t
         def first_run():
             start.wait()
             try:
-                salts.append(Ledger(folder).salt(create=True))
+                salts.append(Ledger(folder).create_salt(new_salt()))
             except Exception as exc:           # a reader that saw the file before its contents
                 errors.append(exc)
 
