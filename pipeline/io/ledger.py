@@ -4,6 +4,7 @@ Layout of a ledger folder::
 
     deployment.json          the deployment's public salt (created once)
     copies/part-*.parquet    rows, each file written once under a fresh name
+    seals/seal-*.parquet     MACs of rows written before rows carried one (``pointmark ledger seal``)
     intents/*.json           copies a run is about to publish (removed once published)
     locks/                   one flock per asset, held by the run issuing it
     bases/                   the default basis store (see basis_store.py)
@@ -93,6 +94,8 @@ LEDGER_SCHEMA = pa.schema([
     ("row_mac", pa.string()),
 ])
 
+_SEAL_SCHEMA = pa.schema([("ledger_part", pa.string()), ("row_index", pa.int64()), ("row_mac", pa.string())])
+
 # the columns a row's MAC covers: all of them but the MAC
 MAC_FIELDS = tuple(n for n in LEDGER_SCHEMA.names if n != "row_mac")
 _HEX = {"key_salt": re.compile(r"[0-9a-f]{32}"), "source_sha256": re.compile(r"[0-9a-f]{64}"),
@@ -180,12 +183,58 @@ class Ledger:
             A part file that is not a ledger part (unreadable, another schema,
             or a row whose salt or hashes are not hex), named with the row.
         """
+        sealed = self.seals()
         out = []
         for part in self.parts():
-            for r in _read_part(part):
+            for i, r in enumerate(_read_part(part)):
+                if r["row_mac"] is None and (part.name, i) in sealed:
+                    r["row_mac"] = sealed[part.name, i]        # a row older than MACs, sealed since
                 if (status is None or r["status"] == status) and (asset_key is None or r["asset_key"] == asset_key):
-                    out.append({**r, "ledger_part": part.name})
+                    out.append({**r, "ledger_part": part.name, "ledger_row": i})
         return out
+
+    # -- rows written before rows carried a MAC --------------------------------
+    def seals(self):
+        """{(part name, row index): MAC} of rows sealed after they were written."""
+        folder = self.folder / "seals"
+        out = {}
+        for path in sorted(folder.glob("seal-*.parquet")) if folder.is_dir() else []:
+            try:
+                rows = pq.read_table(path, schema=_SEAL_SCHEMA).to_pylist()
+            except (OSError, pa.ArrowException, ValueError, TypeError):
+                raise LedgerError(f"{path}: not a seal file: a foreign or damaged file in the ledger; "
+                                  f"move it out to continue") from None
+            for r in rows:
+                out.setdefault((r["ledger_part"], r["row_index"]), r["row_mac"])
+        return out
+
+    def seal(self, mac_key):
+        """MAC every row that has none (rows of ledgers older than MACs); returns how many were sealed.
+
+        Whoever holds the secret vouches, by sealing, for the rows as they
+        stand: run it once after upgrading, on a ledger you trust.
+        """
+        from ..kernels.keys import row_mac
+
+        rows = [r for r in self.rows(status=None) if r["row_mac"] is None]
+        if not rows:
+            return 0
+        table = pa.Table.from_pylist(
+            [{"ledger_part": r["ledger_part"], "row_index": r["ledger_row"],
+              "row_mac": row_mac(mac_key, r, MAC_FIELDS)} for r in rows], schema=_SEAL_SCHEMA)
+        buf = io.BytesIO()
+        pq.write_table(table, buf)
+        folder = self.folder / "seals"
+        folder.mkdir(parents=True, exist_ok=True)
+        name = f"seal-{_now().strftime('%Y%m%dT%H%M%S')}-{uuid.uuid4().hex[:12]}.parquet"
+        tmp = folder / f".{name}.tmp"
+        try:
+            _write_durable(tmp, buf.getvalue())
+            os.link(tmp, folder / name)
+        finally:
+            tmp.unlink(missing_ok=True)
+        _sync_folder(folder)
+        return len(rows)
 
     def append(self, rows, mac_key=None):
         """Write rows as a new part file (never an existing name), durably; returns its path.
