@@ -70,7 +70,8 @@ def _check_ledger_against_files(manifests, marked):
 
 @pytest.mark.parametrize("case", ["dir is the catalogue", "dir holds the catalogue", "dir inside the catalogue",
                                   "manifests inside the catalogue", "bases inside the catalogue",
-                                  "dir is a file", "dir name too long", "recipient folder is an asset folder"])
+                                  "dir is a file", "bases is a file", "dir name too long",
+                                  "recipient folder is an asset folder"])
 def test_outputs_that_touch_the_catalogue_are_refused_before_anything_is_written(tmp_path, case):
     src = make_catalogue(tmp_path / "assets", n_assets=2)
     (tmp_path / "a-file").write_text("not a folder\n")
@@ -80,6 +81,7 @@ def test_outputs_that_touch_the_catalogue_are_refused_before_anything_is_written
               "manifests inside the catalogue": {"manifests": src / "ledger"},
               "bases inside the catalogue": {"bases": src / "store"},
               "dir is a file": {"dir": tmp_path / "a-file" / "marked"},
+              "bases is a file": {"bases": tmp_path / "a-file"},
               "dir name too long": {"dir": tmp_path / ("x" * 300)},
               "recipient folder is an asset folder": {"dir": "."}}[case]
     cfg = _config(tmp_path, src, **output)
