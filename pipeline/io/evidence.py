@@ -17,9 +17,33 @@ import numpy as np
 
 from .pointcloud import atomic_write_bytes
 
-__all__ = ["render_match", "write_summary"]
+__all__ = ["render_match", "write_summary", "md_cell", "plain_text"]
 
 _MAX_POINTS = 20000
+_CONTROL = {c: f"\\x{c:02x}" if c < 256 else f"\\u{c:04x}" for c in [*range(32), *range(127, 160), 0x2028, 0x2029]}
+
+
+def plain_text(text, limit=400):
+    """One line of at most ``limit`` characters: control characters (newlines too) as ``\\xNN``.
+
+    For file names and error text that go into the scan's results: a name or
+    a file's content can carry newlines, which must not start a line of their own.
+    """
+    text = str(text).translate(_CONTROL)
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+def md_cell(text, limit=400):
+    """``text`` as one Markdown table cell: one line (:func:`plain_text`), pipes, backticks and markup escaped.
+
+    A suspect's file name or an error quoting a file's first line can hold
+    ``|`` and newlines; unescaped they would add rows (a forged accusation)
+    to the report.
+    """
+    text = plain_text(text, limit)
+    for ch in "\\`|*_[]<>#":
+        text = text.replace(ch, "\\" + ch)
+    return text
 
 
 def _plt():
@@ -95,13 +119,17 @@ def render_match(original, suspect, registration, clusters, cluster_scores, titl
     return atomic_write_bytes(path, buf.getvalue())
 
 
-def write_summary(rows, path, epsilon):
-    """Write the scan summary (Markdown) from its result rows; returns its path."""
+def write_summary(rows, path, epsilon, notices=()):
+    """Write the scan summary (Markdown) from its result rows; returns its path.
+
+    ``notices``: lines said above the table (ledger rows set aside, copies
+    under keys not held), escaped like every cell.
+    """
     import json
 
     latest = {}
     for r in sorted(rows, key=lambda r: (r.get("scanned_at") is None, r.get("scanned_at"))):
-        latest[r.get("suspect_sha256") or r["suspect_path"]] = r
+        latest[r["suspect_path"]] = r        # one row per file: the same bytes at two paths are two suspects
     rows = sorted(latest.values(), key=lambda r: ({"match": 0, "inconclusive": 1, "failed": 2}.get(r["verdict"], 3),
                                                   r["suspect_path"]))
     counts = {v: sum(r["verdict"] == v for r in rows) for v in ("match", "inconclusive", "no match", "failed")}
@@ -117,6 +145,7 @@ def write_summary(rows, path, epsilon):
              "'failed' means the check could not be done (it is retried by the next scan). 'Registration failed' "
              "means the suspect could not be laid onto any candidate asset (under 5 % of it on the asset, or "
              "under 10 % of the asset covered), so its 'no match' says nothing about those assets.", "",
+             *[f"- {md_cell(n, 1000)}" for n in notices], *([""] if notices else []),
              "| suspect | verdict | asset | recipient (issued copy) | score / threshold | p-value | margin | "
              "recipients checked | evidence |", "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
@@ -126,11 +155,14 @@ def write_summary(rows, path, epsilon):
         score = f"{r['score']:.1f} / {r['threshold']:.1f}" if r.get("score") is not None and r.get("threshold") else "-"
         p = f"{r['p_value']:.2g}" if r.get("p_value") is not None else "-"
         margin = f"{r['margin']:.1f}" if r.get("margin") is not None else "-"
-        picture = f"[picture](evidence/{Path(r['evidence_path']).name})" if r.get("evidence_path") else "-"
+        picture = f"[picture](evidence/{md_cell(Path(r['evidence_path']).name)})" if r.get("evidence_path") else "-"
         note = f" ({r['error']})" if r.get("error") else ""
+        if r.get("note"):
+            note += f" ({r['note']})"
         if r.get("registration_status") == "registration failed" and r["verdict"] != "match":
             note += " (registration failed on every candidate: the suspect may hold the asset in a form not reached)"
-        lines.append(f"| {Path(r['suspect_path']).name} | {r['verdict']}{note} | {r.get('candidate_asset') or '-'} | "
-                     f"{who} | {score} | {p} | {margin} | {r.get('n_checked') or '-'} | {picture} |")
+        cells = [Path(r["suspect_path"]).name, r["verdict"] + note, r.get("candidate_asset") or "-", who]
+        lines.append("| " + " | ".join(md_cell(c, 600) for c in cells)
+                     + f" | {score} | {p} | {margin} | {r.get('n_checked') or '-'} | {picture} |")
     atomic_write_bytes(path, ("\n".join(lines) + "\n").encode())
     return Path(path)

@@ -1,8 +1,15 @@
 """Leak scans on Dask: which asset, and which recipient, suspect files came from.
 
+Suspects are every point-cloud file of ``scan.suspects`` (a folder,
+recursively, a glob or one file), told apart by path and sha256, never by
+stem.  A FIFO, a device, a socket, an empty file, a broken link or a link
+that leads out of the suspects folder is refused from its metadata, before
+anything opens, reads or hashes it: a failed row naming the path and why
+(counted, retried by the next scan).
+
 Per suspect: (1) a suspect that is a catalogue original's own bytes is no
 match; (2) an exact sha256 match with an issued copy attributes at once;
-(3) otherwise the top-K catalogue assets by local-descriptor votes
+(3) otherwise the top-K ledger assets by local-descriptor votes
 (part-to-whole: crops, scenes) and the top-K by shape distribution (the
 suspect whole, without outliers and object by object, against each asset
 whole, cut and without outliers) are checked, alternately best-ranked first and until the
@@ -10,6 +17,26 @@ first match, through the one attribution
 path (:mod:`pipeline.orchestrate.attribute`), each against every recipient
 issued under the keys held; the verdict is corrected for every recipient of
 every candidate planned.
+
+Every issued copy the ledger holds is searched, in the current catalogue or
+not: an asset whose original left the catalogue (deleted, moved, renamed) is
+ranked and checked through a catalogue file with its bytes, its recorded
+source path or the copy the run kept in the basis store.
+
+Ledger rows are trusted only with a valid row MAC (:func:`held_rows`):
+the others are set aside, counted in report.md, and never attribute or
+accuse anyone.
+
+Copies the scan cannot check: those under keys the secret does not open,
+and those of assets whose original no file holds.  A suspect is affected
+when its sha256 is the recorded sha256 of such a copy, or when it is not a
+match and one of its candidate assets (ranked over every asset of the
+ledger, whatever its key) has copies under keys not held; copies whose
+original is lost cannot be ranked, so they affect every suspect that is not
+a match.  An affected suspect is never "no match": it reads "inconclusive",
+with ``n_unchecked`` and ``unchecked`` ("N copies under key ID (fingerprint
+F)") in its row and report.md, and is scanned again when the secret opens
+other keys (``keys_held``).
 
 Layout of ``scan.out``: ``results/`` (one Parquet file per suspect and
 ledger/catalogue version, or ``.failed.parquet``), ``evidence/`` (a picture
@@ -45,14 +72,14 @@ import pyarrow as pa
 
 from .. import __version__, config as config_mod
 from ..io.basis_store import find_file, write_file
-from ..io.catalog import discover_assets, read_catalogue
-from ..io.evidence import render_match, write_summary
+from ..io.catalog import list_suspects, read_catalogue
+from ..io.evidence import plain_text, render_match, write_summary
 from ..io.ledger import Ledger
 from ..io.manifest import read_rows, write_rows
 from ..io.pointcloud import InputError, atomic_write_bytes, read_points, sha256_file
 from ..kernels.descriptor import d2_descriptor, descriptor_distance
-from .attribute import check_asset, decide
-from .detect import held_rows
+from .attribute import check_asset, decide, original_files
+from .detect import held_rows, unheld_copies, unheld_summary
 
 __all__ = ["SCAN_SCHEMA", "run_scan", "read_scan", "render_evidence"]
 
@@ -87,6 +114,9 @@ SCAN_SCHEMA = pa.schema([
     ("status", pa.string()),
     ("error", pa.string()),
     ("note", pa.string()),
+    ("n_unchecked", pa.int64()),
+    ("unchecked", pa.string()),
+    ("keys_held", pa.string()),
     ("tool_version", pa.string()),
     ("scanned_at", pa.timestamp("ms", tz="UTC")),
 ])
@@ -97,6 +127,9 @@ def _index(path):
     from ..features import FeatureIndex
 
     return FeatureIndex.load(path)
+
+
+MIN_POINTS = 16     # under this a suspect's shape and marks cannot be measured: failed, never ranked
 
 
 def triage(suspect_path, descriptors, index_path):
@@ -110,6 +143,8 @@ def triage(suspect_path, descriptors, index_path):
     """
     t0 = time.perf_counter()
     points = read_points(suspect_path).points
+    if len(points) < MIN_POINTS:
+        raise InputError(f"{suspect_path}: {len(points)} point(s): too few to hold a watermark (at least {MIN_POINTS})")
     names = list(descriptors)
     shaped, index_ranking = {}, []
     if index_path:
@@ -183,26 +218,92 @@ def _build_index(out, cat_version, catalogue_paths):
 
 
 def _reference(cfg, secret):
+    """What a scan checks against, read before any work: ledger rows, catalogue, the file of each asset."""
     sc = cfg["scan"]
     for name in ("suspects", "catalogue"):
         if not sc[name]:
             raise config_mod.ConfigError(f"config: scan.{name}: required for a scan")
     ledger = Ledger(sc["manifests"] or cfg["output"]["manifests"])
-    rows, materials = held_rows(ledger, secret)          # refuses a secret that opens nothing
+    report = {}
+    rows, materials = held_rows(ledger, secret, report=report)      # refuses a secret that opens nothing
     catalogue = [r for r in read_catalogue(sc["catalogue"]) if r["status"] == "ok"]
     cat_version = hashlib.sha256("\n".join(sorted(r["sha256"] for r in catalogue)).encode()).hexdigest()[:16]
-    issued = defaultdict(list)
+    issued, unheld = defaultdict(list), defaultdict(list)
     for r in rows:
         issued[r["asset_key"]].append(r)
+    for r in report["unheld"]:
+        unheld[r["asset_key"]].append(r)
     originals = {r["sha256"] for r in catalogue} | {r["source_sha256"] for r in rows}
     # an issued copy with its original's bytes is no copy: it never attributes anything
     by_sha = {r["output_sha256"]: r for r in rows if r["output_sha256"] not in originals}
-    descriptors = {r["asset_key"]: r["descriptor"] for r in catalogue if r["asset_key"] in issued}
-    assets = {r["asset_key"]: r["sha256"] for r in catalogue}
-    base = Path(sc["catalogue"]).resolve().parent
-    paths = {r["asset_key"]: (Path(r["path"]) if Path(r["path"]).is_absolute() else base / r["path"])
-             for r in catalogue if r["asset_key"] in issued}
-    return ledger, materials, issued, by_sha, originals, descriptors, cat_version, assets, paths
+    store = str(Path(cfg["output"]["bases"] or ledger.folder / "bases"))
+    paths, lost = _asset_files(catalogue, Path(sc["catalogue"]).resolve().parent, {**unheld, **issued}, store)
+    descriptors = {r["asset_key"]: r["descriptor"] for r in catalogue if r["asset_key"] in paths}
+    return {"ledger": ledger, "materials": materials, "issued": issued, "unheld": unheld, "by_sha": by_sha,
+            "unheld_sha": {r["output_sha256"]: r for r in report["unheld"]}, "originals": originals,
+            "descriptors": descriptors, "cat_version": cat_version,
+            "assets": {r["asset_key"]: r["sha256"] for r in catalogue}, "paths": paths, "lost": lost,
+            "untrusted": report["untrusted"], "store": store,
+            "keys_held": ",".join(sorted({r["key_fingerprint"] for r in rows}))}
+
+
+def _asset_files(catalogue, base, ledger_assets, store):
+    """The file each ledger asset is ranked by, and the assets no file holds.
+
+    The catalogue's file of that key; else (the original moved, renamed or
+    deleted and the catalogue rebuilt) a catalogue file with the bytes the
+    copies were issued from, the source path recorded, or the copy a run kept
+    in the basis store (:func:`pipeline.orchestrate.attribute.original_files`):
+    a scan checks every issued copy the ledger holds, in the catalogue or not.
+
+    Returns
+    -------
+    paths : dict asset key -> Path
+    lost : dict asset key -> list of dict (its rows: copies no file can be checked against)
+    """
+    by_key = {r["asset_key"]: r for r in catalogue}
+    by_sha = {r["sha256"]: r for r in catalogue}
+    paths, lost = {}, {}
+    for asset, rows in ledger_assets.items():
+        if asset in by_key:
+            row = by_key[asset]
+        else:
+            row = next((by_sha[r["source_sha256"]] for r in reversed(rows) if r["source_sha256"] in by_sha), None)
+        if row is not None:
+            paths[asset] = Path(row["path"]) if Path(row["path"]).is_absolute() else base / row["path"]
+            continue
+        found, _ = original_files(rows, (), store)
+        newest = next((found[r["source_sha256"]] for r in reversed(rows) if r["source_sha256"] in found), None)
+        if newest is None:
+            lost[asset] = rows
+        else:
+            paths[asset] = Path(newest)
+    return paths, lost
+
+
+def _ranked_by(ref, out):
+    """The candidate index (kept in ``out``) and each asset's whole-shape descriptor where the index lacks it.
+
+    Assets outside the catalogue have no catalogue descriptor: theirs is
+    computed from their file when the index lacks them; one no file can be
+    read for joins ``ref["lost"]``.
+    """
+    extra = sorted(set(ref["paths"]) - set(ref["descriptors"]))
+    version = ref["cat_version"]
+    if extra:      # a catalogue version's index never mixes with one that ranks ledger-only assets
+        version = hashlib.sha256((version + "\n".join(f"{a}={ref['paths'][a]}" for a in extra)).encode()).hexdigest()[:16]
+    index_path = _build_index(out, version, ref["paths"])
+    indexed = set(_index(index_path).keys) if index_path else set()
+    descriptors = dict(ref["descriptors"])
+    for asset in extra:
+        if asset not in indexed:
+            try:
+                points = read_points(ref["paths"][asset]).points
+            except InputError:
+                ref["lost"][asset] = ref["issued"].get(asset, []) + ref["unheld"].get(asset, [])
+                continue
+            descriptors[asset] = d2_descriptor(points - points.mean(axis=0))
+    return index_path, descriptors
 
 
 def _result_path(out, sha, versions, failed=False):
@@ -218,26 +319,35 @@ def run_scan(cfg, secret, *, force=False):
     from .run import start_client
 
     sc = cfg["scan"]
-    ledger, materials, issued, by_sha, originals, descriptors, cat_version, assets, paths = _reference(cfg, secret)
-    versions = (ledger.version(), cat_version)
-    suspects = [a.path for a in discover_assets(sc["suspects"])]
-    detect_params = config_mod.detect_params(cfg)
-    store = str(Path(cfg["output"]["bases"] or ledger.folder / "bases"))
+    ref = _reference(cfg, secret)
+    ledger, materials, issued, paths = ref["ledger"], ref["materials"], ref["issued"], ref["paths"]
+    versions = (ledger.version(), ref["cat_version"])
     out = Path(sc["out"])
+    suspects, others = _suspects(sc["suspects"], out)
+    detect_params = config_mod.detect_params(cfg)
+    store = ref["store"]
     out.mkdir(parents=True, exist_ok=True)
-    state = _save_state(out, versions, [p.name for p in ledger.parts()], assets)
-    index_path = _build_index(out, cat_version, paths)
+    state = _save_state(out, versions, [p.name for p in ledger.parts()], ref["assets"])
+    index_path, descriptors = _ranked_by(ref, out)
+    notices = _notices(ref, others)
+    for line in notices:
+        print(f"[pointmark] scan: {plain_text(line, 1000)}", file=sys.stderr, flush=True)
     previous = {} if force else _previous(out)
     t0 = time.perf_counter()
     counts = {"match": 0, "no match": 0, "inconclusive": 0, "failed": 0, "skipped": 0}
+    for path, why in suspects:            # refused from its metadata: never opened, read or hashed
+        if why is not None:
+            _record(out, versions, {"suspect_path": str(path)}, "failed", error=f"{path}: {why}")
+            counts["failed"] += 1
+    readable = [p for p, why in suspects if why is None]
     # suspects already scanned against these versions are skipped before any
     # work (hashing is cheap; ranking a suspect against the catalogue is not)
-    done = {p for p in suspects if previous and _already(previous.get(_sha_or_none(p)), versions)}
+    done = {p for p in readable if previous and _already(previous.get(_sha_or_none(p)), versions, ref["keys_held"])}
     counts["skipped"] = len(done)
     client, cluster = start_client(cfg)
     try:
         triages = {client.submit(triage, str(p), descriptors, index_path, pure=False): p
-                   for p in suspects if p not in done}
+                   for p in readable if p not in done}
         pending = as_completed(list(triages))
         waiting = {}
         for fut in pending:
@@ -249,25 +359,30 @@ def run_scan(cfg, secret, *, force=False):
                     continue
                 info = fut.result()
                 prev = previous.get(info["sha256"])
-                if _already(prev, versions):   # the same bytes twice in the folder
+                if _already(prev, versions, ref["keys_held"]):   # the same bytes twice in the folder
                     counts["skipped"] += 1
                     continue
-                verdict = _quick(info, by_sha, originals, out, versions)
+                verdict = _quick(info, ref, out, versions)
                 if verdict:
                     counts[verdict] += 1
                     continue
                 view = _scope(issued, prev, state, out)
                 info["prev"] = prev
-                info["candidates"] = _candidates(info, view, sc["top_k"], sc["shape_margin"])
-                info["planned"] = planned_recipients([view[a] for a in info["candidates"]], materials)
+                info["candidates"] = _candidates(info, set(view) | set(ref["unheld"]), sc["top_k"],
+                                                 sc["shape_margin"])
+                info["unheld"] = unheld_copies([r for rows in ref["unheld"].values() for r in rows],
+                                               set(info["candidates"]), info["sha256"])
+                info["lost"] = [r for rows in ref["lost"].values() for r in rows]
+                checked = [a for a in info["candidates"] if a in view]
+                info["planned"] = planned_recipients([view[a] for a in checked], materials)
                 info["checks"], info["errors"] = [], []
                 # candidates are checked best-ranked first and the search
                 # stops at the first match: the threshold counts every
                 # recipient of every candidate planned, so stopping early
                 # adds no chance to accuse
-                info["queue"] = [(view[a], [str(paths[a])] if a in paths else []) for a in info["candidates"]]
+                info["queue"] = [(view[a], [str(paths[a])] if a in paths else []) for a in checked]
                 if not _submit_next(client, info, materials, store, detect_params, waiting, pending):
-                    counts[_finish(out, versions, info, detect_params.epsilon, store)] += 1
+                    counts[_finish(out, versions, info, detect_params.epsilon, store, ref["keys_held"])] += 1
             else:
                 info = waiting.pop(fut)
                 if fut.status == "finished":
@@ -276,20 +391,66 @@ def run_scan(cfg, secret, *, force=False):
                     info["errors"].append(_text(fut.exception()))
                 matched = decide(info["checks"], detect_params.epsilon, _prior(info), info["planned"])["accused"]
                 if matched or not _submit_next(client, info, materials, store, detect_params, waiting, pending):
-                    verdict = _finish(out, versions, info, detect_params.epsilon, store)
+                    verdict = _finish(out, versions, info, detect_params.epsilon, store, ref["keys_held"])
                     counts[verdict] += 1
-                    print(f"[pointmark] scan: {info['path']}: {verdict}", file=sys.stderr, flush=True)
+                    print(f"[pointmark] scan: {plain_text(info['path'])}: {verdict}", file=sys.stderr, flush=True)
     finally:
         client.close()
         if cluster is not None:
             cluster.close()
-    summary = write_summary(read_scan(out), out / "report.md", detect_params.epsilon)
+    summary = write_summary(read_scan(out), out / "report.md", detect_params.epsilon, notices)
     print(f"scanned {len(suspects)} suspects in {time.perf_counter() - t0:.0f}s: {counts['match']} match, "
           f"{counts['inconclusive']} inconclusive, {counts['no match']} no match, {counts['failed']} failed, "
           f"{counts['skipped']} already scanned; results in {out}, evidence report {summary}")
     if counts["failed"]:
         return 3
     return 1 if counts["match"] else 0
+
+
+def _suspects(source, out):
+    """Every suspect file (path, why it is refused or None), checked before anything is written.
+
+    Raises
+    ------
+    ConfigError
+        ``scan.suspects`` is the scan's own output folder or inside it, or
+        a glob that matches no point-cloud file.
+    """
+    where = Path(str(source).split("*")[0].split("?")[0].split("[")[0] or ".")
+    if where.resolve() == out.resolve() or out.resolve() in where.resolve().parents:
+        raise config_mod.ConfigError(f"config: scan.suspects: {plain_text(source)} is inside scan.out "
+                                     f"({plain_text(out)}), the scan's own results")
+    try:
+        suspects, others = list_suspects(source)
+    except InputError as exc:
+        raise config_mod.ConfigError(f"config: scan.suspects: {exc}") from None
+    if not suspects and any(ch in str(source) for ch in "*?["):
+        raise config_mod.ConfigError(f"config: scan.suspects: {plain_text(source)} matches no point-cloud file "
+                                     f"({len(others)} other files)")
+    return suspects, others
+
+
+def _notices(ref, others):
+    """Lines the scan says once, on stderr and in report.md: what it could not check or trust."""
+    lines = []
+    if ref["untrusted"]:
+        n = sum(len(v) for v in ref["untrusted"].values())
+        lines.append(f"{n} ledger row(s) set aside as untrusted (row MAC missing or wrong), never used to accuse: "
+                     + ", ".join(f"{part} ({len(v)})" for part, v in sorted(ref["untrusted"].items())))
+    held_keys = {r["key_fingerprint"] for rows in ref["issued"].values() for r in rows}
+    unheld = [r for rows in ref["unheld"].values() for r in rows if r["key_fingerprint"] not in held_keys]
+    if unheld:
+        lines.append(f"unchecked: {unheld_summary(unheld)}, which the secret does not open: suspects that may "
+                     f"be one of them read inconclusive, never no match (scan again with that secret)")
+    if ref["lost"]:
+        n = sum(len(v) for v in ref["lost"].values())
+        lines.append(f"unchecked: {n} issued copies of {len(ref['lost'])} asset(s) whose original no file holds "
+                     f"(not in the catalogue, nor at the recorded path, nor kept in the basis store): "
+                     + ", ".join(sorted(ref["lost"])[:10]))
+    if others:
+        lines.append(f"{len(others)} file(s) of other formats among the suspects were not scanned, e.g. "
+                     f"{others[0]}")
+    return lines
 
 
 def planned_recipients(candidate_rows, materials):
@@ -322,9 +483,14 @@ def _sha_or_none(path):
         return None
 
 
-def _already(prev, versions):
-    """True when a suspect's last result was against these ledger and catalogue versions."""
-    return prev is not None and (prev["ledger_version"], prev["catalogue_version"]) == versions
+def _already(prev, versions, keys_held):
+    """True when a suspect's last result was against these ledger and catalogue versions.
+
+    A result that left copies unchecked (keys not held) is redone when the
+    secret opens other keys than then.
+    """
+    return (prev is not None and (prev["ledger_version"], prev["catalogue_version"]) == versions
+            and (not prev.get("n_unchecked") or prev.get("keys_held") == keys_held))
 
 
 def _submit_next(client, info, materials, store, detect_params, waiting, pending):
@@ -347,16 +513,23 @@ def _text(exc):
     return str(exc) if isinstance(exc, ValueError) else f"{type(exc).__name__}: {exc}"
 
 
-def _quick(info, by_sha, originals, out, versions):
-    """Verdicts that need no detection: an original's own bytes, an exact issued copy."""
-    if info["sha256"] in originals:
+def _quick(info, ref, out, versions):
+    """Verdicts that need no detection: an original's own bytes, an exact issued copy (held key or not)."""
+    if info["sha256"] in ref["originals"]:
         _record(out, versions, info, "no match", error="the suspect is a catalogue original's own bytes")
         return "no match"
-    row = by_sha.get(info["sha256"])
+    row = ref["by_sha"].get(info["sha256"])
     if row is None:
-        return None
+        row = ref["unheld_sha"].get(info["sha256"])
+        if row is None:
+            return None
+        _record(out, versions, info, "inconclusive", candidate_asset=row["asset_key"], n_unchecked=1,
+                unchecked=unheld_summary([row]), keys_held=ref["keys_held"],
+                note=f"the exact bytes of a copy issued under key {row['key_id']} (fingerprint "
+                     f"{row['key_fingerprint']}), which the secret does not open: scan again with that secret")
+        return "inconclusive"
     _record(out, versions, info, "match", candidate_asset=row["asset_key"], recipient=row["recipient"],
-            key_id=row["key_id"], generation=row["generation"], p_value=0.0,
+            key_id=row["key_id"], generation=row["generation"], p_value=0.0, keys_held=ref["keys_held"],
             accused_json=json.dumps([{"recipient": row["recipient"], "asset_key": row["asset_key"],
                                       "exact_sha256": True}]))
     return "match"
@@ -374,19 +547,23 @@ def render_evidence(suspect_path, original_path, accused, store, path):
                         {**accused["registration"], "centre": centre}, members, accused["cluster_scores"], title, path)
 
 
-def _finish(out, versions, info, epsilon, store):
+def _finish(out, versions, info, epsilon, store, keys_held):
     if info["errors"]:     # a check that raised is never "no match": retried next scan
         _record(out, versions, info, "failed", error="; ".join(info["errors"]))
         return "failed"
     prev = info.get("prev")
     result = decide(info["checks"], epsilon, _prior(info), info.get("planned", 0))
-    if prev is not None and result["verdict"] != "match" and prev["verdict"] in ("match", "inconclusive"):
+    # (an earlier "inconclusive" for copies it could not check is no finding: it is redone)
+    if prev is not None and result["verdict"] != "match" and (
+            prev["verdict"] == "match" or (prev["verdict"] == "inconclusive" and not prev.get("n_unchecked"))):
         # what was found before stands; the new copies and assets did not change it
         carried = {k: prev[k] for k in SCAN_SCHEMA.names if k in prev and k not in ("scanned_at", "ledger_version",
                                                                                      "catalogue_version")}
         _record(out, versions, info, prev["verdict"], **{k: v for k, v in carried.items() if k not in
                                                         ("suspect_path", "suspect_sha256", "n_points", "verdict",
-                                                         "status", "tool_version", "schema_version", "note")},
+                                                         "status", "tool_version", "schema_version", "note",
+                                                         "keys_held")},
+                keys_held=keys_held,
                 note=f"checked {result['n_checked'] - (prev.get('n_checked') or 0)} more recipients; "
                      f"the verdict of {prev['scanned_at']:%Y-%m-%d %H:%M} stands")
         return prev["verdict"]
@@ -395,6 +572,10 @@ def _finish(out, versions, info, epsilon, store):
         # copies whose original no file holds may be what this is: failed (retried), never "no match"
         _record(out, versions, info, "failed", error="; ".join(unchecked), n_checked=result["n_checked"])
         return "failed"
+    unheld = info.get("unheld", []) + (info.get("lost", []) if result["verdict"] != "match" else [])
+    if unheld and result["verdict"] == "no match":
+        # copies it may be were not checked (keys not held, originals nowhere): never "no match"
+        result["verdict"] = "inconclusive"
     top = result["accused"][0] if result["accused"] else None
     evidence = None
     if top is not None and top.get("cluster_scores") is not None:
@@ -418,8 +599,18 @@ def _finish(out, versions, info, epsilon, store):
             registration_status=status,
             seconds_registration=sum(s["registration"] for s in seconds),
             seconds_detection=sum(s["estimate"] + s["scoring"] for s in seconds),
-            evidence_path=None if evidence is None else str(evidence))
+            evidence_path=None if evidence is None else str(evidence), keys_held=keys_held,
+            n_unchecked=len(unheld) or None, unchecked=_unchecked_text(info) or None)
     return result["verdict"]
+
+
+def _unchecked_text(info):
+    """What a suspect's result could not check: copies under keys not held, copies whose original is lost."""
+    parts = [unheld_summary(info.get("unheld", []))]
+    lost = info.get("lost", [])
+    if lost:
+        parts.append(f"{len(lost)} cop{'y' if len(lost) == 1 else 'ies'} whose original no file holds")
+    return "; ".join(p for p in parts if p)
 
 
 def _save_state(out, versions, parts, assets):
@@ -445,7 +636,7 @@ def _previous(out):
 
 
 def _scope(issued, prev, state, out):
-    """Issued rows a suspect must be checked against: all, or those added since its last scan."""
+    """Issued rows a suspect must be checked against: all, or those added (or opened) since its last scan."""
     if prev is None:
         return issued
     folder = Path(out) / "state"
@@ -455,9 +646,11 @@ def _scope(issued, prev, state, out):
     except (OSError, ValueError):
         return issued                       # no record of what it saw: check everything again
     view = {}
+    held_then = set((prev.get("keys_held") or "").split(",")) if prev.get("keys_held") is not None else None
     for asset, rows in issued.items():
         new_asset = assets.get(asset) != state["assets"].get(asset)
-        keep = [r for r in rows if new_asset or r["ledger_part"] not in parts]
+        keep = [r for r in rows if new_asset or r["ledger_part"] not in parts
+                or (held_then is not None and r["key_fingerprint"] not in held_then)]
         if keep:
             view[asset] = keep
     return view
@@ -477,6 +670,9 @@ def _record(out, versions, info, verdict, **columns):
            "seconds_candidates": info.get("seconds"), "verdict": verdict,
            "status": "failed" if verdict == "failed" else "ok", "ledger_version": versions[0],
            "catalogue_version": versions[1], "tool_version": __version__, "scanned_at": now, **columns}
+    for name in ("error", "note"):       # one line, bounded: a file's content never starts a line of its own
+        if row.get(name) is not None:
+            row[name] = plain_text(row[name], 2000)
     path = _result_path(out, sha, versions, failed=verdict == "failed")
     stamp, n = now.strftime("%Y%m%dT%H%M%S"), 0
     while verdict != "failed" and path.exists():

@@ -1,0 +1,242 @@
+"""Hostile scans: never a silent miss, never an accusation from forged or injected text (issue 36).
+
+One small world (two 3,000-point assets issued to alice and bob) is built
+once; every test scans its own suspects folder into its own ``scan.out``
+through the CLI, in this process, on an in-process Dask cluster, and undoes
+what it changed in the world.
+"""
+
+import contextlib
+import os
+import re
+import shutil
+from pathlib import Path
+
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+import yaml
+
+from pipeline import cli, config
+from pipeline.demo import procedural_shape
+from pipeline.io.catalog import catalogue_record, discover_assets, write_catalogue
+from pipeline.io.ledger import LEDGER_SCHEMA, Ledger
+from pipeline.io.pointcloud import read_points, sha256_file, write_array
+from pipeline.kernels import attacks
+from pipeline.orchestrate.run import plan_job, run_job
+from pipeline.orchestrate.progress import Progress
+from pipeline.orchestrate.scan import read_scan
+from tests.orchestrate.test_run import SECRET, _run, make_catalogue, write_config
+
+pytestmark = pytest.mark.slow
+NEW_SECRET = "rotated-secret-for-carol-5e1"
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0") as c:
+        yield c
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory, cluster):
+    tmp = tmp_path_factory.mktemp("hostile")
+    src = make_catalogue(tmp / "assets", n_assets=2)
+    cfg_path = write_config(tmp, src, extra={"dask": {"address": cluster.scheduler_address}})
+    _run(cfg_path, serial=True)
+    write_catalogue([catalogue_record(a) for a in discover_assets(src)], tmp / "catalog.parquet")
+    return tmp
+
+
+def _scan(world, name, suspects=None, *, secret_file=None, catalogue=None, ledger=None, top_k=1):
+    """Scan ``suspects`` (default ``world/name``) into ``world/name.out``; returns (exit, stdout, stderr, rows)."""
+    cfg = yaml.safe_load((world / "out.yaml").read_text())
+    cfg["scan"] = {"suspects": str(suspects or world / name), "out": str(world / f"{name}.out"), "top_k": top_k,
+                   "catalogue": str(catalogue or world / "catalog.parquet"), "manifests": ledger}
+    if secret_file:
+        cfg["key"]["secret_file"] = str(secret_file)
+    (world / f"{name}.yaml").write_text(yaml.safe_dump(cfg))
+    return world / f"{name}.yaml"
+
+
+def _cli(capsys, cfg_path, *flags):
+    code = cli.main(["scan", str(cfg_path), *flags])
+    out, err = capsys.readouterr()
+    folder = Path(yaml.safe_load(Path(cfg_path).read_text())["scan"]["out"])
+    return code, out, err, ({os.path.basename(r["suspect_path"]): r for r in sorted(read_scan(folder),
+                                                                                    key=lambda r: r["scanned_at"])}
+                            if folder.exists() else {})
+
+
+def _leak(world, recipient, asset, seed):
+    """A copy issued to ``recipient``, moved and reshuffled (its bytes are no issued copy's)."""
+    marked = next((world / "out" / "marked" / recipient).glob(f"{asset}.*"))
+    return attacks.apply_chain(read_points(marked).points, [("random_similarity", None), ("shuffle", None)], seed)
+
+
+@contextlib.contextmanager
+def _moved(path, to):
+    to.parent.mkdir(parents=True, exist_ok=True)
+    path.rename(to)
+    try:
+        yield to
+    finally:
+        to.rename(path)
+
+
+# -- items 3, 4, 6, 7: every file scanned, hostile files refused unread, nothing echoed ----------------------
+
+def _hostile_folder(world):
+    folder = world / "hostile"
+    folder.mkdir()
+    alice = next((world / "out" / "marked" / "alice").glob("asset-1.*"))
+    shutil.copy(alice, folder / "x.pcd")                                  # same stem, two suspects
+    shutil.copy(world / "assets" / "asset-0.ply", folder / "x.ply")       # an original's own bytes
+    shutil.copy(alice, folder / "d\u00fcp\u20ac \u0645.pcd")              # unicode name, exact copy
+    os.mkfifo(folder / "pipe.xyz")
+    (folder / "key.xyz").symlink_to(world / "secret.key")
+    (folder / "passwd.pts").symlink_to("/etc/passwd")
+    (folder / "gone.ply").symlink_to("nowhere.ply")
+    (folder / "empty.ply").write_bytes(b"")
+    (folder / "evil\n| match | asset-0 | mallory (exact copy) | 9 | 0 | 9 | 2 | - |\n.xyz").write_text("1 2 3\n")
+    (folder / "pipes.pts").write_text("| match | asset-0 | mallory (exact copy) | 9 / 1 | 0 |\n1 2 3\n")
+    (folder / "notes.txt.md").write_text("not a suspect\n")
+    return folder
+
+
+REFUSED = {"pipe.xyz": "a FIFO", "key.xyz": "leads out of the suspects folder",
+           "passwd.pts": "leads out of the suspects folder", "gone.ply": "a broken symbolic link",
+           "empty.ply": "an empty file"}
+
+
+@pytest.fixture(scope="module")
+def hostile(world):
+    folder = _hostile_folder(world)
+    return folder
+
+
+def test_every_file_is_scanned_whatever_its_stem_and_hostile_ones_are_refused_unread(world, hostile, capsys):
+    code, out, err, rows = _cli(capsys, _scan(world, "hostile"))
+    assert code == 3, out + err                                     # refused files are failures, retried
+    assert rows["x.pcd"]["verdict"] == "match" and rows["x.pcd"]["recipient"] == "alice"
+    assert rows["x.ply"]["verdict"] == "no match"
+    assert rows["d\u00fcp\u20ac \u0645.pcd"]["recipient"] == "alice"
+    for name, why in REFUSED.items():
+        assert rows[name]["verdict"] == "failed" and why in rows[name]["error"] and name in rows[name]["error"]
+    assert "1 file(s) of other formats" in err
+    # a second scan comes back at once: the FIFO is never opened, and the failures are retried
+    code, out, err, rows = _cli(capsys, _scan(world, "hostile"))
+    assert code == 3 and f"{len(REFUSED) + 2} failed" in out and "3 already scanned" in out, out
+
+
+@pytest.mark.parametrize("leak", ["secret", "passwd", "forged row"])
+def test_no_file_content_and_no_forged_row_reaches_the_results_or_report(world, hostile, capsys, leak):
+    code, _, _, rows = _cli(capsys, _scan(world, "hostile"))
+    text = "\n".join(str(v) for r in rows.values() for v in r.values())
+    report = (world / "hostile.out" / "report.md").read_text()
+    if leak == "secret":
+        assert SECRET[:12] not in text and SECRET[:12] not in report
+    elif leak == "passwd":
+        first = Path("/etc/passwd").read_text().splitlines()[0]
+        assert first[:10] not in text and first[:10] not in report
+    else:
+        table = [re.split(r"(?<!\\)\|", line)[1:-1] for line in report.splitlines() if line.startswith("|")]
+        assert len(table) == 2 + len(rows) and all(len(cells) == 9 for cells in table)   # one row per suspect
+        assert not any(cells[1].strip().startswith("match") and "mallory" in cells[3] for cells in table)
+        assert all("\n" not in (r["error"] or "") for r in rows.values())
+
+
+def test_a_suspects_folder_that_is_the_scan_output_or_a_glob_matching_nothing_is_refused_first(world, capsys):
+    (world / "self.out" / "results").mkdir(parents=True)
+    for suspects in (world / "self.out", world / "self.out" / "results", str(world / "none-*.ply")):
+        code, _, err, _ = _cli(capsys, _scan(world, "self", suspects))
+        assert code == 2 and len(err.strip().splitlines()) == 1 and "scan.suspects" in err, err
+    assert not list((world / "self.out" / "results").iterdir())
+
+
+# -- item 1: an original that left the catalogue --------------------------------------------------------------
+
+@pytest.mark.parametrize("how", ["moved into a subfolder", "deleted"])
+def test_a_copy_of_an_original_that_left_the_catalogue_is_still_attributed(world, capsys, how):
+    name = "left-" + how.split()[0]
+    write_array(world / name, "found", _leak(world, "bob", "asset-0", 5), "ply")
+    original = world / "assets" / "asset-0.ply"
+    target = world / "assets" / "old" / "asset-0.ply" if how.startswith("moved") else world / "away" / "asset-0.ply"
+    with _moved(original, target):
+        write_catalogue([catalogue_record(a) for a in discover_assets(world / "assets")], world / f"{name}.parquet")
+        keys = {r["asset_key"] for r in pq.read_table(world / f"{name}.parquet").to_pylist()}
+        assert "asset-0" not in keys                                    # the catalogue rebuilt, as one does
+        code, out, err, rows = _cli(capsys, _scan(world, name, catalogue=world / f"{name}.parquet"))
+    assert code == 1, out + err
+    assert rows["found.ply"]["verdict"] == "match" and rows["found.ply"]["recipient"] == "bob"
+    assert rows["found.ply"]["candidate_asset"] == "asset-0"
+
+
+# -- item 5: ledger rows without a valid MAC ------------------------------------------------------------------
+
+def _forge(world, case):
+    """A part file someone without the secret drops into the ledger; returns its path."""
+    ledger = Ledger(world / "out" / "manifests")
+    rows = [r for r in ledger.rows() if r["asset_key"] == "asset-1" and r["recipient"] == "alice"]
+    forged = {k: v for k, v in rows[0].items() if k in LEDGER_SCHEMA.names}
+    path = ledger.copies / "part-99990101T000000-forged000000.parquet"
+    if case == "foreign part":
+        pq.write_table(pa.table({"asset_key": ["asset-1"], "recipient": ["mallory"]}), path)
+        return path
+    if case == "reassigned recipient":
+        forged["recipient"] = "mallory"                                  # alice's copy, said to be mallory's
+    else:
+        forged.update(recipient="mallory", output_sha256=sha256_file(world / "forged sha256" / "innocent.ply"))
+    pq.write_table(pa.Table.from_pylist([forged], schema=LEDGER_SCHEMA), path)
+    return path
+
+
+@pytest.mark.parametrize("case", ["reassigned recipient", "forged sha256", "foreign part"])
+def test_a_forged_ledger_part_never_accuses(world, capsys, case):
+    folder = world / case
+    folder.mkdir()
+    shutil.copy(next((world / "out" / "marked" / "alice").glob("asset-1.*")), folder / "alice-copy.pcd")
+    write_array(folder, "innocent", procedural_shape("shell", 3000, seed=77) * 10, "ply")
+    part = _forge(world, case)
+    try:
+        code, out, err, rows = _cli(capsys, _scan(world, case))
+    finally:
+        part.unlink()
+    if case == "foreign part":
+        assert code == 2 and part.name in err and len(err.strip().splitlines()) == 1, err
+        assert not rows
+        return
+    assert code == 1, out + err
+    assert rows["alice-copy.pcd"]["recipient"] == "alice"
+    assert rows["innocent.ply"]["verdict"] != "match" and rows["innocent.ply"]["recipient"] is None
+    assert part.name in err and "untrusted" in err
+    report = (world / f"{case}.out" / "report.md").read_text()
+    assert "1 ledger row(s) set aside as untrusted" in report and "mallory" not in report
+
+
+# -- item 2: copies under a key the secret does not open ------------------------------------------------------
+
+def test_copies_under_a_key_not_held_are_said_and_never_read_no_match(world, capsys, tmp_path):
+    # a rotated key issues carol's copies; the scan holds only the new secret, the leak is bob's old copy
+    shutil.copytree(world, tmp_path / "w", symlinks=True, ignore=shutil.ignore_patterns("*.out", "hostile"))
+    w = tmp_path / "w"
+    for p in w.glob("*.yaml"):
+        p.write_text(p.read_text().replace(str(world), str(w)))
+    (w / "new.key").write_text(NEW_SECRET)
+    cfg = config.load_config(w / "out.yaml", ["recipients=[carol]", "key.id=rotated", f"key.secret_file={w / 'new.key'}"])
+    assert run_job(plan_job(cfg, NEW_SECRET.encode()), cfg, serial=True, progress=Progress())["ok"] == 2
+    write_array(w / "rotated", "old-leak", _leak(w, "bob", "asset-0", 7), "ply")
+    shutil.copy(next((w / "out" / "marked" / "alice").glob("asset-1.*")), w / "rotated" / "old-exact.pcd")
+    cfg_path = _scan(w, "rotated", secret_file=w / "new.key")
+    code, out, err, rows = _cli(capsys, cfg_path)
+    assert code == 0, out + err
+    for name in ("old-leak.ply", "old-exact.pcd"):
+        assert rows[name]["verdict"] == "inconclusive" and rows[name]["n_unchecked"] >= 1, rows[name]
+        assert "under key test-key (fingerprint" in rows[name]["unchecked"]
+    assert "unchecked: 4 copies under key test-key" in (w / "rotated.out" / "report.md").read_text()
+    # the old secret opens them: the same versions are scanned again, and bob is named
+    code, out, err, rows = _cli(capsys, _scan(w, "rotated", secret_file=w / "secret.key"))
+    assert code == 1, out + err
+    assert rows["old-leak.ply"]["verdict"] == "match" and rows["old-leak.ply"]["recipient"] == "bob"
