@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .text import TextFormatError, parse_coords, rewrite_lines, split_lines
+from .text import TextFormatError, check_text, describe_value, parse_coords, rewrite_lines, split_lines
 
 __all__ = ["ObjData", "ObjError", "read_obj", "write_obj", "obj_from_points"]
 
@@ -65,6 +65,10 @@ def read_obj(data):
     -------
     ObjData
     """
+    try:
+        check_text(data)
+    except TextFormatError as exc:
+        raise ObjError(str(exc)) from None
     lines = split_lines(data)
     rows, coords, polygons = [], [], []
     for i, line in enumerate(lines):
@@ -106,7 +110,7 @@ def _vertex_index(ref, defined, n_vertices, lineno):
     try:
         k = int(head)
     except ValueError:
-        raise ObjError(f"line {lineno}: face vertex {ref.decode(errors='replace')!r} is not an index") from None
+        raise ObjError(f"line {lineno}: a face vertex ({describe_value(ref)}) is not an index") from None
     index = k - 1 if k > 0 else defined + k
     if k == 0 or not 0 <= index < n_vertices:
         raise ObjError(f"line {lineno}: face vertex index {k} is out of range "

@@ -16,15 +16,20 @@ open3d read, though it may be larger than PCL's own.
 
 from __future__ import annotations
 
+import re
 import struct
 from dataclasses import dataclass
 
 import numpy as np
 
-from .text import TextFormatError, parse_coords, rewrite_lines, split_lines
+from .text import MAX_LINE, TextFormatError, check_text, describe_value, describe_word, parse_coords, rewrite_lines, split_lines
 
 __all__ = ["PcdData", "PcdError", "read_pcd", "write_pcd", "pcd_from_points",
-           "lzf_compress", "lzf_decompress"]
+           "lzf_compress", "lzf_decompress", "check_head", "MAX_HEADER"]
+
+MAX_HEADER = 1 << 20      # bytes; the DATA line must end within them
+_KEYS = ("VERSION", "FIELDS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "VIEWPOINT", "POINTS", "DATA")
+_POSITIVE = re.compile(r"[1-9][0-9]{0,17}")     # a count: decimal digits, no sign, no leading zero
 
 _TYPES = {("F", 4): "<f4", ("F", 8): "<f8", ("I", 1): "i1", ("I", 2): "<i2", ("I", 4): "<i4",
           ("I", 8): "<i8", ("U", 1): "u1", ("U", 2): "<u2", ("U", 4): "<u4", ("U", 8): "<u8"}
@@ -77,13 +82,14 @@ def read_pcd(data):
     -------
     PcdData
     """
-    header, body, keys = _split_header(data)
-    fields = _fields(keys)
-    n = _point_count(keys)
-    encoding = keys["DATA"][0]
-    if encoding not in _ENCODINGS:
-        raise PcdError(f"unknown DATA encoding {encoding!r} (use one of {', '.join(_ENCODINGS)})")
+    header, fields, n, encoding = _layout(data, len(data))
+    body = memoryview(data)[len(header):]
     if encoding == "ascii":
+        body = bytes(body)
+        try:
+            check_text(body)
+        except TextFormatError as exc:
+            raise PcdError(f"the ascii body: {exc}") from None
         return _read_ascii(header, fields, n, body)
     dtype = _dtype(fields)
     raw = _binary_body(body, n, dtype) if encoding == "binary" else _compressed_body(body, n, dtype)
@@ -92,24 +98,80 @@ def read_pcd(data):
     return PcdData(header, fields, encoding, points, records=records)
 
 
+def check_head(head, size):
+    """Check a PCD's header and declared sizes from its first bytes, before the body is read.
+
+    Parameters
+    ----------
+    head : bytes
+        The file's first bytes (at least :data:`MAX_HEADER` plus 8 of them, or the whole file).
+    size : int
+        The file's length in bytes.
+
+    Raises
+    ------
+    PcdError
+        No header, a bad one, or a body length that disagrees with it.
+    """
+    _layout(head, size)
+
+
+def _layout(data, size):
+    """(header bytes, fields, point count, encoding), the body length checked against ``size``."""
+    header, keys = _split_header(data)
+    fields = _fields(keys)
+    n = _point_count(keys)
+    encoding = keys["DATA"][0]
+    if encoding not in _ENCODINGS:
+        raise PcdError(f"unknown DATA encoding {describe_word(encoding)} (use one of {', '.join(_ENCODINGS)})")
+    _check_body_size(encoding, fields, n, data[len(header):len(header) + 8], size - len(header))
+    return header, fields, n, encoding
+
+
+def _check_body_size(encoding, fields, n, prefix, held):
+    """The body's length (``held`` bytes, starting with ``prefix``) against what the header declares."""
+    itemsize = _dtype(fields).itemsize
+    if encoding == "binary" and held != n * itemsize:
+        raise PcdError(f"POINTS {n} x {itemsize} bytes = {n * itemsize} bytes of data, the body has {held}")
+    if encoding == "ascii" and held < n * sum(c for *_rest, c in fields):     # a byte per value at least
+        raise PcdError(f"truncated: POINTS {n} ascii records need at least "
+                       f"{n * sum(c for *_rest, c in fields)} bytes, the body has {held}")
+    if encoding == "binary_compressed":
+        if held < 8 or len(prefix) < 8:
+            raise PcdError("binary_compressed body shorter than its 8-byte size prefix")
+        packed, unpacked = struct.unpack("<II", bytes(prefix))
+        if held - 8 != packed:
+            raise PcdError(f"the compressed block declares {packed} bytes, the body holds {held - 8}")
+        if unpacked != n * itemsize:
+            raise PcdError(f"the compressed block unpacks to {unpacked} bytes, "
+                           f"POINTS {n} x {itemsize} bytes = {n * itemsize}")
+
+
 def _split_header(data):
+    """(header bytes up to and including the DATA line, {key: words}); bounded to MAX_HEADER bytes."""
     keys, pos, lineno = {}, 0, 0
-    while pos < len(data):
-        nl = data.find(b"\n", pos)
-        end = len(data) if nl < 0 else nl + 1
-        line = data[pos:end].decode("ascii", errors="replace").strip()
+    while pos < min(len(data), MAX_HEADER):
+        nl = data.find(b"\n", pos, pos + MAX_LINE)
+        end = min(len(data), pos + MAX_LINE) if nl < 0 else nl + 1
+        raw = bytes(data[pos:end])
+        line = raw.decode("ascii", errors="replace").strip()
         pos, lineno = end, lineno + 1
         if not line or line.startswith("#"):
             continue
         words = line.split()
+        if words[0] not in _KEYS and not keys:
+            raise PcdError("not a PCD file (its first header line holds no PCD keyword such as VERSION or FIELDS)")
+        if words[0] not in _KEYS:
+            raise PcdError(f"header line {lineno}: unknown key {describe_word(words[0])} "
+                           f"(PCD keys: {' '.join(_KEYS)})")
         if words[0] in keys:
             raise PcdError(f"header line {lineno}: {words[0]} appears twice")
         keys[words[0]] = words[1:]
         if words[0] == "DATA":
             if len(words) != 2:
-                raise PcdError(f"header line {lineno}: bad DATA line {line!r}")
-            return data[:pos], data[pos:], keys
-    raise PcdError("not a PCD file (no DATA line)")
+                raise PcdError(f"header line {lineno}: bad DATA line (DATA ENCODING expected)")
+            return bytes(data[:pos]), keys
+    raise PcdError(f"not a PCD file (no DATA line within the first {MAX_HEADER} bytes)")
 
 
 def _fields(keys):
@@ -123,23 +185,32 @@ def _fields(keys):
                        f"({len(names)}, {len(keys['SIZE'])}, {len(keys['TYPE'])}, {len(counts)})")
     fields = []
     for name, size, kind, count in zip(names, keys["SIZE"], keys["TYPE"], counts):
-        if not (size.isdigit() and count.isdigit()) or (kind, int(size)) not in _TYPES or int(count) < 1:
-            raise PcdError(f"field {name!r}: unsupported TYPE {kind} SIZE {size} COUNT {count}")
+        if not (_POSITIVE.fullmatch(size) and _POSITIVE.fullmatch(count)) or (kind, int(size)) not in _TYPES:
+            raise PcdError(f"field {describe_word(name)}: unsupported TYPE {describe_word(kind)} "
+                           f"SIZE {describe_value(size)} COUNT {describe_value(count)} "
+                           f"(SIZE 1, 2, 4 or 8, COUNT a positive integer)")
         fields.append((name, kind, int(size), int(count)))
     for axis in "xyz":
         found = [f for f in fields if f[0] == axis]
         if len(found) != 1 or found[0][3] != 1:
-            raise PcdError(f"the header needs exactly one field {axis!r} with COUNT 1 (FIELDS {' '.join(names)})")
+            raise PcdError(f"the header needs exactly one field {axis!r} with COUNT 1 "
+                           f"(FIELDS has {len(names)} names)")
     return fields
 
 
 def _point_count(keys):
-    try:
-        width = int(keys["WIDTH"][0])
-        height = int(keys.get("HEIGHT", ["1"])[0])
-        points = int(keys["POINTS"][0]) if "POINTS" in keys else width * height
-    except (KeyError, IndexError, ValueError):
-        raise PcdError("WIDTH, HEIGHT or POINTS missing or not an integer") from None
+    values = {}
+    for key in ("WIDTH", "HEIGHT", "POINTS"):
+        words = keys.get(key, ["1"] if key == "HEIGHT" else None if key == "WIDTH" else [])
+        if words is None:
+            raise PcdError("the header has no WIDTH line")
+        if key == "POINTS" and not words:
+            continue
+        if len(words) != 1 or not _POSITIVE.fullmatch(words[0]):
+            raise PcdError(f"{key} {describe_value(' '.join(words))} is not a positive integer")
+        values[key] = int(words[0])
+    width, height = values["WIDTH"], values["HEIGHT"]
+    points = values.get("POINTS", width * height)
     if width * height != points:
         raise PcdError(f"WIDTH x HEIGHT = {width} x {height} disagrees with POINTS {points}")
     return points
@@ -167,15 +238,8 @@ def _binary_body(body, n, dtype):
 
 
 def _compressed_body(body, n, dtype):
-    if len(body) < 8:
-        raise PcdError("binary_compressed body shorter than its 8-byte size prefix")
-    packed, unpacked = struct.unpack("<II", body[:8])
-    if len(body) - 8 != packed:
-        raise PcdError(f"the compressed block declares {packed} bytes, the body holds {len(body) - 8}")
-    if unpacked != n * dtype.itemsize:
-        raise PcdError(f"the compressed block unpacks to {unpacked} bytes, "
-                       f"POINTS {n} x {dtype.itemsize} bytes = {n * dtype.itemsize}")
-    return lzf_decompress(body[8:], unpacked)
+    """The decompressed column block; sizes were checked by :func:`_check_body_size`."""
+    return lzf_decompress(bytes(body[8:]), n * dtype.itemsize)
 
 
 def _from_columns(raw, n, dtype):
@@ -296,7 +360,8 @@ def lzf_decompress(data, size):
     ----------
     data : bytes
     size : int
-        Expected decoded length.
+        Expected decoded length: a hard limit, decoding stops the moment the
+        output would grow past it.
 
     Returns
     -------
@@ -311,6 +376,7 @@ def lzf_decompress(data, size):
             if ctrl < 32:
                 if i + ctrl + 1 > n:
                     raise PcdError("corrupt LZF data (literal run past the end)")
+                _check_room(out, ctrl + 1, size)
                 out += data[i:i + ctrl + 1]
                 i += ctrl + 1
                 continue
@@ -320,12 +386,18 @@ def lzf_decompress(data, size):
                 i += 1
             ref = len(out) - ((ctrl & 0x1F) << 8) - data[i] - 1
             i += 1
+            _check_room(out, length + 2, size)
             _copy_back(out, ref, length + 2)
     except IndexError:
         raise PcdError("corrupt LZF data (back reference past the end)") from None
     if len(out) != size:
         raise PcdError(f"LZF data decodes to {len(out)} bytes, the header says {size}")
     return bytes(out)
+
+
+def _check_room(out, length, size):
+    if len(out) + length > size:
+        raise PcdError(f"LZF data decodes to more than the {size} bytes the header declares")
 
 
 def _copy_back(out, ref, length):

@@ -12,8 +12,10 @@ place; an input is never overwritten.
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import os
+import stat
 import sys
 import tempfile
 from dataclasses import dataclass
@@ -21,12 +23,14 @@ from pathlib import Path
 
 import numpy as np
 
+from . import pcd as pcd_io
+from . import ply as ply_io
 from .obj import obj_from_points, read_obj, write_obj
 from .pcd import pcd_from_points, read_pcd, write_pcd
 from .ply import PlyError, read_ply, write_ply
-from .text import pts_from_points, read_pts, read_xyz, write_text, xyz_from_points
+from .text import check_text, excerpt, packed_kind, pts_from_points, read_pts, read_xyz, write_text, xyz_from_points
 
-__all__ = ["PointCloud", "InputError", "read_points", "read_coordinates", "write_points", "write_array",
+__all__ = ["PointCloud", "InputError", "WriteError", "read_points", "read_coordinates", "write_points", "write_array",
            "check_output",
            "check_distinct",
            "atomic_write_bytes", "sha256_file", "FORMATS"]
@@ -40,6 +44,14 @@ _NEW_FILES = {"pcd": pcd_from_points, "xyz": xyz_from_points, "pts": pts_from_po
 
 class InputError(ValueError):
     """A file that cannot be used; the message names the file and the problem."""
+
+
+class WriteError(InputError, OSError):
+    """A write that failed in the OS (a full disk, a refused permission); the message names the file.
+
+    Also an ``OSError``, so callers that fall back on a failed write (the
+    basis store's stand-in) still see one.
+    """
 
 
 @dataclass
@@ -92,21 +104,94 @@ def read_points(path):
     """
     path = Path(path)
     fmt = format_of(path)
-    if not path.is_file():
-        raise InputError(f"{path}: no such file")
-    try:
-        if fmt == "ply":
-            native = read_ply(path.read_bytes())
-            points = native.points
-        elif fmt in ("las", "laz"):
-            native, points = _read_las(path)
-        else:
-            native = _READERS[fmt](path.read_bytes())
-            points = native.points
-    except (PlyError, OSError, ValueError) as exc:
-        raise InputError(f"{path}: {exc}") from None
+    with _open_input(path) as f:
+        size = os.fstat(f.fileno()).st_size
+        try:
+            _check_head(fmt, f.read(HEAD_BYTES), size)
+            if fmt in ("las", "laz"):
+                native, points = _read_las(path)
+            else:
+                f.seek(0)
+                data = f.read()
+                native = read_ply(data) if fmt == "ply" else _READERS[fmt](data)
+                points = native.points
+        except OSError as exc:
+            raise InputError(f"{path}: cannot read: {_reason(exc)}") from None
+        except (PlyError, ValueError) as exc:
+            raise InputError(f"{path}: {exc}") from None
     _check(path, points)
     return PointCloud(points, path, fmt, native)
+
+
+HEAD_BYTES = max(ply_io.MAX_HEADER, pcd_io.MAX_HEADER) + 64   # read and checked before the body
+
+
+def _check_head(fmt, head, size):
+    """Magic, header and declared sizes from the file's first bytes, before its body is read.
+
+    Raises
+    ------
+    ValueError
+        A compressed or empty file, the wrong magic, a header that disagrees
+        with the file's length, or (text formats) a first block that is not text.
+    """
+    if size == 0:
+        raise ValueError("the file is empty")
+    kind = packed_kind(head)
+    if kind:
+        raise ValueError(f"{kind}-compressed data, not a {fmt.upper()} file; decompress it first")
+    if fmt == "ply":
+        ply_io.check_head(head, size)
+    elif fmt == "pcd":
+        pcd_io.check_head(head, size)
+    elif fmt in ("xyz", "pts", "obj"):
+        check_text(head)
+    elif head[:4] != b"LASF":
+        raise ValueError("not a LAS/LAZ file (no 'LASF' signature)")
+
+
+class _open_input:
+    """Open a point-set file for reading: a regular file, never a folder, FIFO or device.
+
+    Opened without blocking, then checked on the open descriptor, so a FIFO
+    swapped in after the check cannot make the read wait forever.
+    """
+
+    def __init__(self, path):
+        self.path = Path(path)
+
+    def __enter__(self):
+        try:
+            fd = os.open(self.path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+        except OSError as exc:
+            raise InputError(f"{self.path}: {self._why(exc)}") from None
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            os.close(fd)
+            what = "is a folder, not a point-set file" if stat.S_ISDIR(mode) else \
+                "not a regular file (a FIFO, socket or device); give a point-set file"
+            raise InputError(f"{self.path}: {what}")
+        os.set_blocking(fd, True)
+        self.file = os.fdopen(fd, "rb")
+        return self.file
+
+    def __exit__(self, exc_type, exc, tb):
+        self.file.close()
+        return False
+
+    def _why(self, exc):
+        if exc.errno == errno.ENOENT:
+            return "a broken link (its target does not exist)" if self.path.is_symlink() else "no such file"
+        if exc.errno == errno.ELOOP:
+            return "symlink loop"
+        if exc.errno == errno.EISDIR:
+            return "is a folder, not a point-set file"
+        return _reason(exc)
+
+
+def _reason(exc):
+    """The OS's words for an error (``no space left on device``), without the path or errno."""
+    return (os.strerror(exc.errno) if exc.errno else str(exc)).lower()
 
 
 def _check(path, points):
@@ -148,7 +233,7 @@ def check_output(source, output, *, same_format=True):
                              f"(use the suffix {Path(source).suffix})")
     if output.exists() and source.exists() and os.path.samefile(output, source):
         raise InputError(f"{output}: refusing to overwrite the original")
-    if output.resolve() == source.resolve():
+    if os.path.realpath(output) == os.path.realpath(source):     # realpath: no error on a link loop
         raise InputError(f"{output}: refusing to overwrite the original")
     parent = output.parent
     while not parent.exists():
@@ -199,17 +284,17 @@ def _read_las(path):
 
     size = path.stat().st_size
     with open(path, "rb") as f:
-        _check_las_block(f, size)
+        n_chunks = _check_las_block(f, size)
     try:
         with _native_stderr_held(), laspy.open(str(path)) as reader:
-            _check_las_header(reader.header, size)
-            las = reader.read()
+            _check_las_header(reader.header, size, n_chunks)
+            las = _read_laz(reader) if reader.header.are_points_compressed else reader.read()
     except ValueError:
         raise
     except (KeyboardInterrupt, SystemExit):
         raise
     except BaseException as exc:  # laspy raises many types; the LAZ decoder's Rust panics are BaseExceptions
-        raise ValueError(f"cannot read LAS/LAZ: {' '.join(str(exc).split())}") from None
+        raise ValueError(f"cannot read LAS/LAZ: {_library_message(exc)}") from None
     if len(las.points) != las.header.point_count:
         raise ValueError(f"the header declares {las.header.point_count} points, "
                          f"{len(las.points)} could be read")
@@ -220,8 +305,53 @@ def _read_las(path):
     return las, points
 
 
+def _library_message(exc, limit=160):
+    """A library's error text on one line, cut short, with characters that could form markup escaped."""
+    text = " ".join(str(exc).split())
+    return excerpt(text, limit)[1:-1] if text else type(exc).__name__
+
+
+def _read_laz(reader):
+    """A LAZ file's points chunk by chunk: memory follows the data actually decoded, not the declared count.
+
+    Raises
+    ------
+    ValueError
+        When the compressed data holds fewer or more points than the header declares.
+    """
+    import laspy
+
+    count, parts, held = int(reader.header.point_count), [], 0
+    try:
+        for part in reader.chunk_iterator(LAS_CHUNK):
+            parts.append(part.array)
+            held += len(part.array)
+            if held > count:
+                break
+    except (KeyboardInterrupt, SystemExit):
+        raise
+    except BaseException:      # the decoder runs out of data: the count is a lie
+        raise ValueError(f"the header declares {count} points, the compressed data ends after about "
+                         f"{held}") from None
+    if held != count:
+        raise ValueError(f"the header declares {count} points, {held} could be read")
+    array = np.concatenate(parts) if len(parts) != 1 else parts[0]
+    header = reader.header
+    las = laspy.LasData(header=header, points=laspy.ScaleAwarePointRecord(array, header.point_format,
+                                                                          header.scales, header.offsets))
+    if header.version.minor >= 4 and header.number_of_evlrs > 0 and reader.evlrs is None:
+        reader.read_evlrs()
+    return las
+
+
+_POINT_SIZES = {0: 20, 1: 28, 2: 26, 3: 34, 4: 57, 5: 63, 6: 30, 7: 36, 8: 38, 9: 59, 10: 67}
+
+
 def _check_las_block(f, size):
     """The public header block's own fields against the file's length, before laspy parses it.
+
+    Returns the number of chunks the LAZ chunk table declares (None when
+    the file is not compressed or has no chunk table).
 
     A corrupt count of variable-length records, an offset past the end or a
     LAZ chunk table claiming billions of chunks would otherwise have laspy
@@ -236,7 +366,10 @@ def _check_las_block(f, size):
     major, minor = head[24], head[25]
     if major != 1 or minor > 4:
         raise ValueError(f"LAS version {major}.{minor} is not supported (1.0 to 1.4)")
-    header_size, offset, n_vlrs = struct.unpack_from("<HII", head, 94)
+    header_size, offset, n_vlrs, point_format, record = struct.unpack_from("<HIIBH", head, 94)
+    if point_format & 0x3F not in _POINT_SIZES or record < _POINT_SIZES[point_format & 0x3F]:
+        raise ValueError(f"point format {point_format & 0x3F} with records of {record} bytes is not valid "
+                         f"(formats 0 to 10, each record at least its format's size)")
     if not 227 <= header_size <= offset <= size:
         raise ValueError(f"the header size ({header_size}) and the offset to the points ({offset}) "
                          f"do not fit a {size}-byte file")
@@ -258,7 +391,7 @@ def _check_las_block(f, size):
             raise ValueError("truncated: the LAZ chunk table offset is missing")
         table = struct.unpack("<q", raw)[0]
         if table == -1:
-            return
+            return None
         if not offset + 8 <= table <= size - 8:
             raise ValueError(f"the LAZ chunk table offset {table} lies outside the {size}-byte file")
         f.seek(table)
@@ -266,13 +399,19 @@ def _check_las_block(f, size):
         if n_chunks > min(count + 1, size):
             raise ValueError(f"the LAZ chunk table declares {n_chunks} chunks for {count} points "
                              f"in a {size}-byte file")
+        return n_chunks
+    return None
 
 
 _LASZIP_MAX_CHUNK = 10_000_000      # points per chunk; 0xFFFFFFFF means variable-size chunks
 
 
-def _check_laszip_vlr(header, record):
-    """The LASzip VLR's layout, chunk size and item sizes, before the decoder allocates by them."""
+def _check_laszip_vlr(header, record, n_chunks):
+    """The LASzip VLR's layout, chunk size and item sizes, before the decoder allocates by them.
+
+    With fixed-size chunks and a chunk table, the declared point count must
+    fit the chunks: at most ``n_chunks`` x chunk size points.
+    """
     import struct
 
     vlrs = [v for v in header.vlrs if getattr(v, "record_id", None) == 22204]
@@ -291,9 +430,13 @@ def _check_laszip_vlr(header, record):
     sizes = sum(struct.unpack("<HHH", data[34 + 6 * i:40 + 6 * i])[1] for i in range(n_items))
     if sizes != record:
         raise ValueError(f"the LASzip items hold {sizes} bytes per point, the point format {record}")
+    count = int(header.point_count)
+    if chunk != 0xFFFFFFFF and n_chunks is not None and count > n_chunks * chunk:
+        raise ValueError(f"the header declares {count} points, more than the {n_chunks} chunks of {chunk} "
+                         f"points in the LAZ chunk table hold")
 
 
-def _check_las_header(header, size):
+def _check_las_header(header, size, n_chunks=None):
     """Declared point count and record size against the file's length (exact for LAS)."""
     count = int(header.point_count)
     record = int(header.point_format.size)
@@ -307,7 +450,7 @@ def _check_las_header(header, size):
     if header.are_points_compressed:
         if count * record > _LAZ_MAX_RATIO * size:
             raise ValueError(f"the header declares {count} points, more than a {size}-byte LAZ file can hold")
-        _check_laszip_vlr(header, record)
+        _check_laszip_vlr(header, record, n_chunks)
         return
     end = size
     if getattr(header, "number_of_evlrs", 0) and getattr(header, "start_of_first_evlr", 0):
@@ -342,7 +485,7 @@ def write_points(cloud, points, path):
     pathlib.Path
     """
     path = Path(path)
-    if path.exists() and path.resolve() == cloud.path.resolve():
+    if path.exists() and os.path.realpath(path) == os.path.realpath(cloud.path):
         raise InputError(f"{path}: refusing to overwrite the original")
     fmt = format_of(path)
     if fmt != cloud.format:
@@ -449,15 +592,22 @@ def _serialise(cloud, points, path):
 
 
 class _atomic_target:
-    """Context manager giving a temporary path that is renamed to ``path`` on success."""
+    """Context manager giving a temporary path that is renamed to ``path`` on success.
+
+    Any OS error (a full disk, a refused permission) removes the temporary
+    and ends as an :class:`InputError` naming ``path``: ``PATH: no space left on device``.
+    """
 
     def __init__(self, path):
         self.path = Path(path)
 
     def __enter__(self):
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        fd, name = tempfile.mkstemp(prefix=f".{self.path.stem}.", suffix=f".tmp{self.path.suffix}",
-                                    dir=self.path.parent)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            fd, name = tempfile.mkstemp(prefix=f".{self.path.stem}.", suffix=f".tmp{self.path.suffix}",
+                                        dir=self.path.parent)
+        except OSError as exc:
+            raise WriteError(f"{self.path}: cannot write: {_reason(exc)}") from None
         os.close(fd)
         self.tmp = Path(name)
         return self.tmp
@@ -469,16 +619,24 @@ class _atomic_target:
             try:
                 os.chmod(self.tmp, 0o666 & ~umask)      # mkstemp's 0600 would survive the rename
                 os.replace(self.tmp, self.path)
-            except OSError:
+            except OSError as error:
                 self.tmp.unlink(missing_ok=True)
-                raise
-        else:
-            self.tmp.unlink(missing_ok=True)
+                raise WriteError(f"{self.path}: cannot write: {_reason(error)}") from None
+            return False
+        self.tmp.unlink(missing_ok=True)
+        if issubclass(exc_type, OSError):
+            raise WriteError(f"{self.path}: cannot write: {_reason(exc)}") from None
         return False
 
 
 def atomic_write_bytes(path, data):
-    """Write bytes to ``path`` through a temporary file and a rename."""
+    """Write bytes to ``path`` through a temporary file and a rename.
+
+    Raises
+    ------
+    InputError
+        Naming ``path`` when the write fails (no temporary is left behind).
+    """
     with _atomic_target(path) as tmp:
         tmp.write_bytes(data)
     return Path(path)
@@ -504,7 +662,10 @@ def write_array(folder, name, points, fmt, *, keep_existing=True):
     pathlib.Path
     """
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise WriteError(f"{folder}: cannot create the folder: {_reason(exc)}") from None
     suffix = "ply" if fmt == "ply-ascii" else fmt
     path = folder / f"{name}.{suffix}"
     if path.exists() and keep_existing:

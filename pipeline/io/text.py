@@ -29,9 +29,19 @@ import numpy as np
 
 __all__ = ["TextFormatError", "TextTable", "read_xyz", "read_pts", "write_text",
            "xyz_from_points", "pts_from_points", "parse_coords", "rewrite_lines",
-           "format_coordinate", "split_lines"]
+           "format_coordinate", "split_lines", "excerpt", "describe_value", "describe_word", "check_text",
+           "packed_kind", "MAX_LINE"]
 
 _SEPARATORS = re.compile(rb"(\s+)")
+MAX_LINE = 1 << 20          # bytes; a longer line is not a point line (a binary file, a one-line dump)
+EXCERPT = 40                # characters of file content an error message may quote
+_PLAIN = frozenset("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789 .,:;+-_=/()[]{}#@%*~^!?")
+_WORD = re.compile(r"[A-Za-z0-9_.:\-]+")
+_NUMERIC = re.compile(r"[-+0-9.eE_ ]+|[-+]?(nan|inf|infinity)", re.IGNORECASE)
+_PACKED = {b"\x1f\x8b": "gzip", b"PK\x03\x04": "zip", b"\x28\xb5\x2f\xfd": "zstd", b"\xfd7zXZ\x00": "xz",
+           b"BZh": "bzip2", b"7z\xbc\xaf\x27\x1c": "7-zip"}
+_IS_CONTROL = np.zeros(256, dtype=bool)
+_IS_CONTROL[sorted(set(range(32)) - set(b"\t\n\r\f\v")) + [0x7F]] = True
 
 
 class TextFormatError(ValueError):
@@ -63,6 +73,131 @@ class TextTable:
     cols: tuple
     points: np.ndarray
     kinds: tuple = ("f8", "f8", "f8")
+
+
+def excerpt(raw, limit=EXCERPT):
+    """A short, escaped quotation of file content for an error message.
+
+    At most ``limit`` characters of ``raw``, between single quotes; every
+    character outside letters, digits, space and plain punctuation (quotes,
+    ``|``, backticks, ``<``, ``>``, backslash, control characters, non-ASCII)
+    is written as ``\\xNN``, so the quotation stays on one line and cannot
+    form Markdown or shell syntax.
+
+    Parameters
+    ----------
+    raw : bytes or str
+    limit : int
+
+    Returns
+    -------
+    str
+    """
+    text = bytes(raw).decode("latin-1") if isinstance(raw, (bytes, bytearray, memoryview)) else str(raw)
+    shown = "".join(c if c in _PLAIN else (f"\\x{ord(c):02x}" if ord(c) < 256 else f"\\u{ord(c):04x}")
+                    for c in text[:limit])
+    return f"'{shown}{'...' if len(text) > limit else ''}'"
+
+
+def describe_value(raw):
+    """A value from a file's body for an error message: quoted only when it looks numeric.
+
+    Numeric-looking text (digits, signs, points, exponents, ``nan``, ``inf``)
+    is quoted through :func:`excerpt`; anything else is described by its
+    length only, so a secret or private text read by mistake is never echoed.
+
+    Parameters
+    ----------
+    raw : bytes or str
+
+    Returns
+    -------
+    str
+    """
+    text = bytes(raw).decode("latin-1") if isinstance(raw, (bytes, bytearray, memoryview)) else str(raw)
+    if text and len(text) <= EXCERPT and _NUMERIC.fullmatch(text):
+        return excerpt(text)
+    return f"a {len(text)}-character non-numeric value"
+
+
+def describe_word(raw, limit=24):
+    """A header keyword or name for an error message: quoted when it is a short plain word.
+
+    Letters, digits and ``_ . : -``, at most ``limit`` characters, are quoted;
+    anything else is described by its length only.
+
+    Parameters
+    ----------
+    raw : bytes or str
+    limit : int
+
+    Returns
+    -------
+    str
+    """
+    text = bytes(raw).decode("latin-1") if isinstance(raw, (bytes, bytearray, memoryview)) else str(raw)
+    if text and len(text) <= limit and _WORD.fullmatch(text):
+        return f"'{text}'"
+    return describe_value(text)
+
+
+def packed_kind(head):
+    """The archive or compression format whose signature starts ``head`` (bytes), else None."""
+    return next((kind for magic, kind in _PACKED.items() if bytes(head[:len(magic)]) == magic), None)
+
+
+def check_text(data):
+    """Refuse bytes that are not line-oriented ASCII/UTF-8 text, before any parsing.
+
+    Parameters
+    ----------
+    data : bytes
+        The whole file, or its first block.
+
+    Raises
+    ------
+    TextFormatError
+        Compressed data, a byte-order mark, NUL or other control bytes
+        (binary data, UTF-16), old-Mac CR-only line endings, or a line
+        longer than :data:`MAX_LINE`.
+    """
+    kind = packed_kind(data)
+    if kind:
+        raise TextFormatError(f"{kind}-compressed data, not text; decompress the file first")
+    if data[:2] in (b"\xff\xfe", b"\xfe\xff"):
+        raise TextFormatError("UTF-16 text is not supported; save the file as ASCII or UTF-8")
+    if data[:3] == b"\xef\xbb\xbf":
+        raise TextFormatError("the file starts with a UTF-8 byte-order mark; save it without one")
+    _scan(data)
+    if data.count(b"\r") != data.count(b"\r\n"):
+        raise TextFormatError("CR line endings (old Mac text) are not supported; convert them to LF or CRLF")
+
+
+def _scan(data, block=1 << 24):
+    """Refuse control bytes and lines longer than MAX_LINE, block by block (bounded memory)."""
+    start, line_start = 0, 0
+    while start < len(data):
+        chunk = np.frombuffer(data, dtype=np.uint8, count=min(block, len(data) - start), offset=start)
+        control = np.flatnonzero(_IS_CONTROL[chunk])
+        if len(control):
+            at = start + int(control[0])
+            what = "a NUL byte" if data[at] == 0 else f"control byte 0x{data[at]:02x}"
+            raise TextFormatError(f"{what} at offset {at}: binary data or UTF-16 text, not a text point file")
+        ends = np.flatnonzero(chunk == 10) + start
+        if len(ends):
+            lengths = np.diff(np.concatenate([[line_start], ends + 1]))
+            if lengths.max() > MAX_LINE:
+                first = int(np.argmax(lengths > MAX_LINE))
+                _too_long(data, line_start + int(lengths[:first].sum()))
+            line_start = int(ends[-1]) + 1
+        start += len(chunk)
+        if start - line_start > MAX_LINE:
+            _too_long(data, line_start)
+
+
+def _too_long(data, at):
+    line = data.count(b"\n", 0, at) + 1
+    raise TextFormatError(f"line {line} is longer than {MAX_LINE} bytes: not a text point file")
 
 
 def split_lines(data):
@@ -102,8 +237,8 @@ def parse_coords(tokens, cols, lineno):
     try:
         return tuple(float(tokens[c]) for c in cols)
     except ValueError:
-        bad = next(t for t in (tokens[c] for c in cols) if not _is_float(t))
-        raise TextFormatError(f"line {lineno}: coordinate {bad.decode(errors='replace')!r} "
+        k, bad = next((k, t) for k, t in enumerate(tokens[c] for c in cols) if not _is_float(t))
+        raise TextFormatError(f"line {lineno}: coordinate {'xyz'[k]} ({describe_value(bad)}) "
                               "is not a number") from None
 
 
@@ -126,6 +261,7 @@ def read_xyz(data):
     -------
     TextTable
     """
+    check_text(data)
     lines = split_lines(data)
     rows, coords, width = [], [], None
     for i, line in enumerate(lines):
@@ -164,6 +300,7 @@ def read_pts(data):
     -------
     TextTable
     """
+    check_text(data)
     lines = split_lines(data)
     rows, coords, width = [], [], None
     left, count_line = None, 0
@@ -187,8 +324,7 @@ def read_pts(data):
 
 def _count(tokens, lineno):
     if len(tokens) != 1 or not tokens[0].isdigit():
-        shown = b" ".join(tokens).decode(errors="replace")[:60]
-        raise TextFormatError(f"line {lineno}: expected a point count, found {shown!r} "
+        raise TextFormatError(f"line {lineno}: expected a point count, found {describe_value(b' '.join(tokens))} "
                               "(more point lines than the count declares, or no count line)")
     return int(tokens[0])
 

@@ -29,11 +29,11 @@ def _records(n):
     (_head(3, "ascii") + b"1 2 3 4\n5 6 7 8\n", r"POINTS 3 disagrees with the 2 data lines"),
     (_head(1, "ascii") + b"1 2 3 4\n5 6 7 8\n", r"POINTS 1 disagrees with the 2 data lines"),
     (_head(2, "ascii") + b"1 2 3 4\n5 6 7\n", r"line 13: 3 values, the fields need 4"),
-    (_head(2, "ascii") + b"1 2 3 4\n5 six 7 8\n", r"line 13: coordinate 'six' is not a number"),
+    (_head(2, "ascii") + b"1 2 3 4\n5 six 7 8\n", r"line 13: coordinate y \(a 3-character non-numeric value\) is not a number"),
     (_head(4, "binary", w=2, h=3) + _records(4).tobytes(), r"WIDTH x HEIGHT = 2 x 3 disagrees with POINTS 4"),
     (_head(1, "binary_lzf"), r"unknown DATA encoding 'binary_lzf'"),
     (b"VERSION 0.7\nFIELDS x y\nSIZE 4 4\nTYPE F F\nWIDTH 1\nPOINTS 1\nDATA ascii\n1 2\n", r"exactly one field 'z'"),
-    (b"FIELDS x y z\nSIZE 4 4 4\nTYPE F F X\nWIDTH 1\nPOINTS 1\nDATA ascii\n1 2 3\n", r"unsupported TYPE X"),
+    (b"FIELDS x y z\nSIZE 4 4 4\nTYPE F F X\nWIDTH 1\nPOINTS 1\nDATA ascii\n1 2 3\n", r"unsupported TYPE 'X'"),
     (b"FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nWIDTH 1\nPOINTS 1\n", r"no DATA line"),
 ])
 def test_counts_and_headers_that_disagree_are_errors(data, match):

@@ -11,7 +11,7 @@ from pipeline.io.text import TextFormatError, read_pts, read_xyz, write_text
 @pytest.mark.parametrize("data,match", [
     (b"1 2 3\n4 5 6 7\n", r"line 2: 4 columns, the first point line has 3"),
     (b"# c\n\n1 2\n", r"line 3: 2 columns, a point needs x y z"),
-    (b"1 2 3\n4 x 6\n", r"line 2: coordinate 'x' is not a number"),
+    (b"1 2 3\n4 x 6\n", r"line 2: coordinate y \(a 1-character non-numeric value\) is not a number"),
     (b"1,2,3\n", r"line 1: 1 columns"),
 ])
 def test_xyz_errors_name_the_line(data, match):
