@@ -10,6 +10,7 @@ from __future__ import annotations
 import csv
 import glob
 import os
+import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -21,7 +22,7 @@ from .manifest import CATALOG_SCHEMA, write_rows
 from .pointcloud import FORMATS, InputError, format_of, read_points, sha256_file
 
 __all__ = ["Asset", "discover_assets", "catalogue_record", "write_catalogue", "read_catalogue",
-           "check_recipient", "RECIPIENT_PATTERN"]
+           "check_recipient", "RECIPIENT_PATTERN", "list_suspects"]
 
 # a recipient id is a folder name under output.dir: no separators, no "..", no leading dot
 RECIPIENT_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._@+-]{0,127}$"
@@ -146,3 +147,70 @@ def read_catalogue(path):
         if row.get("descriptor") is not None:
             row["descriptor"] = np.asarray(row["descriptor"])
     return rows
+
+
+def list_suspects(source):
+    """Every suspect file a folder (recursively), a glob or one file names, and why any is refused.
+
+    Suspects are told apart by path (and later by sha256), never by stem:
+    ``x.xyz`` and ``x.obj`` are two suspects.  Nothing is opened or read
+    here: a FIFO, a device, a socket, a folder a glob matched, an empty
+    file, a broken link, a link to a folder, and a symbolic link whose
+    target lies outside the suspects folder (a key file, ``/etc/passwd``)
+    are returned with the reason they are refused.
+
+    Parameters
+    ----------
+    source : str or Path
+        A folder, a glob pattern or one point-cloud file.
+
+    Returns
+    -------
+    suspects : list of (Path, str or None)
+        Each point-cloud file (by suffix) and its refusal, None when it may
+        be read; sorted by path.
+    others : list of Path
+        Files of other formats (not suspects), so a caller can say so.
+    """
+    text = str(source)
+    path = Path(text)
+    if path.is_dir():
+        root, found = path, []
+        for folder, dirs, files in os.walk(path):                 # links to folders are not followed
+            dirs[:] = [d for d in dirs if not d.startswith(".")]
+            found += [Path(folder) / n for n in files + [d for d in dirs if os.path.islink(Path(folder) / d)]
+                      if not n.startswith(".")]
+    elif any(ch in text for ch in "*?["):
+        parts = Path(text).parts
+        magic = next(i for i, part in enumerate(parts) if any(ch in part for ch in "*?["))
+        root = Path(*parts[:magic]) if magic else Path(".")      # the folder above the first wildcard
+        # pathlib's "**" follows no link to a folder (glob.glob's does: a link loop never ends)
+        found = list(root.glob(str(Path(*parts[magic:])))) if root.is_dir() else []
+    elif path.suffix.lower() in FORMATS and (path.exists() or path.is_symlink()):
+        root, found = path.parent, [path]
+    else:
+        raise InputError(f"{text}: not a folder, a glob or a point-cloud file ({', '.join(sorted(FORMATS))})")
+    suspects = sorted((p, _refusal(p, root)) for p in found if p.suffix.lower() in FORMATS)
+    others = sorted(p for p in found if p.suffix.lower() not in FORMATS)
+    return suspects, others
+
+
+def _refusal(path, root):
+    """Why ``path`` must not be read as a suspect (None: it may), from its metadata alone."""
+    try:
+        inside = os.path.realpath(root)
+        if os.path.commonpath([os.path.realpath(path), inside]) != inside:
+            return "a symbolic link that leads out of the suspects folder (not read)"
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        return "a broken symbolic link" if os.path.islink(path) else "missing"
+    except OSError as exc:
+        return exc.strerror or type(exc).__name__
+    kinds = {stat.S_ISFIFO: "a FIFO", stat.S_ISCHR: "a character device", stat.S_ISBLK: "a block device",
+             stat.S_ISSOCK: "a socket", stat.S_ISDIR: "a folder"}
+    kind = next((name for test, name in kinds.items() if test(mode)), None)
+    if kind is not None:
+        return f"{kind}, not a regular file (not read)"
+    if os.stat(path).st_size == 0:
+        return "an empty file (0 bytes)"
+    return None
