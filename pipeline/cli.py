@@ -10,8 +10,10 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 import time
+from pathlib import Path
 
 from . import threads
 
@@ -22,7 +24,7 @@ import numpy as np  # noqa: E402
 from . import __version__, config as config_mod
 from .io.pointcloud import InputError, check_distinct, check_output, read_points, write_points
 from .io.ledger import LedgerError
-from .io.secrets import SecretError, load_secret
+from .io.secrets import SecretError, check_key_id, load_secret
 from .kernels import keys, modulation
 from .watermark import ReferenceMismatch, WatermarkError, detect, distortion, embed, params_record
 
@@ -138,8 +140,12 @@ def build_parser():
     return parser
 
 
-def _secret(args, cfg):
-    return load_secret(args.secret_file or cfg["key"]["secret_file"])
+def _secret(args, cfg, key_id=None, where="--key-id"):
+    """The master secret; a key id that holds it (or a part of it) is refused here, before any work."""
+    secret = load_secret(args.secret_file or cfg["key"]["secret_file"])
+    if key_id is not None:
+        check_key_id(key_id, secret, where)
+    return secret
 
 
 def _emit(args, result, lines):
@@ -154,7 +160,7 @@ def cmd_embed(args):
     check_output(args.original, args.output)
     cfg = config_mod.load_config(args.config, args.sets)
     params = config_mod.watermark_params(cfg)
-    secret = _secret(args, cfg)
+    secret = _secret(args, cfg, args.key_id)
     try:
         bits = modulation.hex_to_bits(args.message, params.n_bits)
     except ValueError as exc:
@@ -167,8 +173,7 @@ def cmd_embed(args):
         marked, clusters = embed(cloud.points, material, bits, params)
     except WatermarkError as exc:
         raise InputError(f"{args.original}: {exc}") from None
-    write_points(cloud, marked, args.output)
-    stored = _read_back(args.output)  # the coordinates rounded to the output's precision
+    stored = _publish(cloud, marked, Path(args.output))  # the coordinates rounded to the output's precision
     result = {
         "output": str(args.output),
         "original": str(args.original),
@@ -194,15 +199,35 @@ def cmd_embed(args):
     return 0
 
 
-def _read_back(path):
-    """Coordinates as the written file holds them; an unreadable output is removed."""
-    from pathlib import Path
+def _publish(cloud, marked, out):
+    """Write the copy under a pending name, check what it holds, then rename it to ``out``.
 
+    A copy the file's precision leaves (nearly) unmarked is removed and
+    refused, as in the catalogue run (:func:`~pipeline.orchestrate.tasks.realized_ratio`).
+
+    Returns
+    -------
+    (n, 3) float
+        The coordinates the written file holds.
+    """
+    from .orchestrate.tasks import realized_ratio
+
+    pending = out.with_name(f".{out.stem}.pending{out.suffix}")
+    write_points(cloud, marked, pending)
     try:
-        return read_points(path).points
+        stored = read_points(pending).points
+        realized_ratio(cloud.points, marked, stored, out)
     except InputError as exc:
-        Path(path).unlink(missing_ok=True)
+        pending.unlink(missing_ok=True)
         raise InputError(f"{exc} (the file just written cannot be read back; removed)") from None
+    except WatermarkError as exc:
+        pending.unlink(missing_ok=True)
+        raise InputError(str(exc)) from None
+    except BaseException:
+        pending.unlink(missing_ok=True)
+        raise
+    os.replace(pending, out)
+    return stored
 
 
 def cmd_detect(args):
@@ -212,7 +237,7 @@ def cmd_detect(args):
         raise config_mod.ConfigError("detect --original: --key-id is required")
     cfg = config_mod.load_config(args.config, args.sets)
     params = config_mod.watermark_params(cfg)
-    secret = _secret(args, cfg)
+    secret = _secret(args, cfg, args.key_id)
     expect = None
     if args.expect:
         try:
@@ -263,9 +288,8 @@ def cmd_detect_ledger(args):
 
 
 def cmd_attack(args):
-    from pathlib import Path
-
     from .io.pointcloud import format_of, write_array
+    from .kernels.attacks import chain_size
     from .surface import apply_chain, parse_attack
 
     # An attack writes bare coordinates, in the output's own format: a format
@@ -279,6 +303,10 @@ def cmd_attack(args):
     out = Path(args.output)
     if out.exists() and out.resolve() == cloud.path.resolve():
         raise InputError(f"{out}: refusing to overwrite the input")
+    try:
+        chain_size(chain, len(cloud.points))      # before anything is allocated for the result
+    except ValueError as exc:
+        raise InputError(f"--attack: {exc}") from None
     try:
         attacked = apply_chain(cloud.points, chain, rng=args.seed, faces=cloud.faces())
     except ValueError as exc:
@@ -299,7 +327,7 @@ def cmd_evaluate(args):
             raise config_mod.ConfigError(f"{args.config_file}: --only {unknown[0]}: no such experiment "
                                          f"(there are: {', '.join(sorted(names))})")
         cfg["evaluate"]["experiments"] = [e for e in cfg["evaluate"]["experiments"] if e["name"] in args.only]
-    secret = _secret(args, cfg)
+    secret = _secret(args, cfg, cfg["key"]["id"], "key.id")
     return run_evaluation(cfg, secret)
 
 
@@ -337,7 +365,7 @@ def cmd_run(args):
     from .orchestrate.run import plan_job, run_job
 
     cfg = config_mod.load_config(args.config_file, args.sets)
-    secret = _secret(args, cfg)
+    secret = _secret(args, cfg, cfg["key"]["id"], "key.id")
     job = plan_job(cfg, secret, force=args.force, shard=_shard(args.shard), create=not args.dry_run)
     new = sum(len(a.items) for a in job.assets if not a.error)
     print(f"run {job.run_id}: {len(job.assets)} assets, {new} copies to issue, "
@@ -359,9 +387,13 @@ def cmd_run(args):
 
 
 def cmd_catalog_build(args):
-    from .io.catalog import catalogue_record, discover_assets, write_catalogue
+    from .io.catalog import catalogue_record, check_catalogue_out, check_recipient, discover_assets, \
+        write_catalogue
 
-    recipients = tuple(r for r in args.recipients.split(",") if r)
+    recipients = tuple(check_recipient(r, "--recipients") for r in args.recipients.split(",") if r)
+    if len(set(recipients)) < len(recipients):
+        raise InputError("--recipients: a recipient is named twice")
+    check_catalogue_out(args.out)             # before any file is read
     assets = discover_assets(args.source, default_recipients=recipients)
     rows = [catalogue_record(a) for a in assets]
     write_catalogue(rows, args.out)

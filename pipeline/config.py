@@ -12,12 +12,14 @@ from __future__ import annotations
 import copy
 import json
 import math
+import re
+import sys
 from dataclasses import fields
 from pathlib import Path
 
 import yaml
 
-from .io.catalog import RECIPIENT_PATTERN
+from .io.catalog import RECIPIENT_PATTERN, check_recipient
 from .watermark import DetectParams, WatermarkParams, check_code
 
 __all__ = ["ConfigError", "SCHEMA", "load_config", "watermark_params", "detect_params",
@@ -26,6 +28,24 @@ __all__ = ["ConfigError", "SCHEMA", "load_config", "watermark_params", "detect_p
 
 class ConfigError(ValueError):
     """A config that cannot be used (the message names the key and the fix)."""
+
+
+# a Dask scheduler address: a known protocol and host:port (inproc: any local name)
+ADDRESS_PATTERN = (r"^(?:(?:tcp|tls|ws|wss)://(?:[A-Za-z0-9](?:[A-Za-z0-9.-]{0,252})|\[[0-9A-Fa-f:.]{2,45}\])"
+                   r":[0-9]{1,5}|inproc://[A-Za-z0-9._/-]{1,200})$")
+# bytes as dask.utils.parse_bytes reads them ("auto": Dask's share of the machine)
+MEMORY_PATTERN = r"^(?:auto|[0-9]+(?:\.[0-9]*)?(?:[eE][+-]?[0-9]+)? ?(?:[kKmMgGtTpP][iI]?)?[bB]?)$"
+
+
+# a key id goes into the ledger and onto every line about the key: printable, one line
+KEY_ID_PATTERN = r"^[^\x00-\x1f\x7f]{1,128}$"
+_PATTERN_HELP = {
+    KEY_ID_PATTERN: "is not a key id: 1 to 128 printable characters on one line",
+    ADDRESS_PATTERN: "is not a scheduler address: tcp://HOST:PORT (or tls://, ws://, wss://, inproc://)",
+    MEMORY_PATTERN: "is not a memory size: auto, or bytes as Dask reads them (4GB, 512 MiB, 2e9)",
+    RECIPIENT_PATTERN: "is not a valid recipient id (letters, digits and . _ @ + -, starting with a letter or "
+                       "digit, at most 128 characters)",
+}
 
 
 def _p(kind, default, description, **extra):
@@ -50,8 +70,8 @@ _SEEDS = {
     "default": None,
     "oneOf": [
         {"type": "null"},
-        {"type": "array", "items": {"type": "integer", "minimum": 0}, "minItems": 1},
-        {"type": "array", "items": {"type": "array", "items": {"type": "number"},
+        {"type": "array", "items": {"type": "integer", "minimum": 0, "maximum": 2**53}, "minItems": 1},
+        {"type": "array", "items": {"type": "array", "items": {"type": "number", "minimum": -1e12, "maximum": 1e12},
                                     "minItems": 3, "maxItems": 3}, "minItems": 1},
     ],
 }
@@ -63,15 +83,18 @@ WATERMARK = _section("Embedding parameters (paper, section 2.2).", {
                exclusiveMinimum=0, maximum=0.1),
     "valence": _p("number", 12, "Average valence N_n of the radius mesh.", exclusiveMinimum=0,
                   maximum=200),
-    "n_clusters": _p("integer", 5, "Number of clusters (ignored with cover).", minimum=1),
-    "cluster_size": _p("integer", 4000, "Size limit of each cluster.", minimum=16),
+    "n_clusters": _p("integer", 5, "Number of clusters (ignored with cover).", minimum=1,
+                     maximum=100_000),
+    "cluster_size": _p("integer", 4000, "Size limit of each cluster.", minimum=16,
+                       maximum=10_000_000),
     "seeds": _SEEDS,
     "on_touch": _p(["stop", "skip"], "skip",
                    "A growing cluster that meets another: stop (the paper's rule) or pass around it."),
     "cover": _p("boolean", False, "Cover the whole model with clusters of cluster_size."),
     "chip_layout": _p(["consecutive", "interleaved"], "consecutive",
                       "Chips of a bit on consecutive coefficients (paper) or spread by the key."),
-    "first_coefficient": _p("integer", 0, "Index of the first modulated coefficient.", minimum=0),
+    "first_coefficient": _p("integer", 0, "Index of the first modulated coefficient.", minimum=0,
+                            maximum=1_000_000),
     "crc_bits": _p("integer", 0, "CRC bits appended to the payload (0, 8 or 16).", enum=[0, 8, 16]),
     "displacement": _p(["xyz", "normal"], "xyz",
                        "xyz: the paper's displacement; normal: its part along the normals, at the "
@@ -82,13 +105,13 @@ WATERMARK = _section("Embedding parameters (paper, section 2.2).", {
     "max_displacement": _p(("number", "null"), None,
                            "Cap, in the asset's units, on any point's motion (survey data: e.g. 0.01); "
                            "a cluster whose largest motion exceeds it is scaled down as a whole. "
-                           "null: no cap.", exclusiveMinimum=0),
+                           "null: no cap.", minimum=sys.float_info.min),  # no subnormal cap
     "tile_points": _p(("integer", "null"), None,
                       "Large assets (LiDAR tiles, scanned scenes): plan clusters cell by cell over a grid of "
                       "square cells holding about this many points, each covered by clusters of cluster_size, "
                       "so planning time and memory are linear in the points; normals come from each "
                       "cluster's own points.  Needs cover: true and no seeds.  null: the whole asset at once.",
-                      minimum=1000),
+                      minimum=1000, maximum=1_000_000_000),
     "code": _p(["repetition", "convolutional"], "repetition",
                "Channel code of the payload: repetition (the paper: each bit on c chips) or "
                "convolutional (rate 1/2, K = 7, the same m x c chips over the coded word, soft "
@@ -105,21 +128,22 @@ DETECTION = _section("Detection (paper, section 2.2, Extraction).", {
     "p_threshold": _p("number", 1e-6, "Report 'watermarked' when p_value < p_threshold.",
                       exclusiveMinimum=0, exclusiveMaximum=1),
     "iterations": _p("integer", 2, "Least-squares refits (spectral).", minimum=1, maximum=20),
-    "ridge": _p("number", 1.0, "Relative ridge of the least-squares fit (spectral).", minimum=0),
+    "ridge": _p("number", 1.0, "Relative ridge of the least-squares fit (spectral).", minimum=0,
+                maximum=1e6),
     "tangential_gate": _p("number", 0.25,
                           "Noisy suspects: tangential misfit of matches closer than this many spacings.",
-                          minimum=0),
+                          minimum=0, maximum=1000),
     "ratio_gate": _p("number", 0.5,
                      "Clean suspects: tangential misfit of matches nearer than this times the "
                      "second-nearest distance.", minimum=0, maximum=1),
     "gate_switch": _p("number", 0.4,
                       "Noise across the surface, in median spacings, above which the fixed gate "
-                      "replaces the ratio gate (0: always fixed).", minimum=0),
+                      "replaces the ratio gate (0: always fixed).", minimum=0, maximum=1000),
     "outlier_trim": _p(("number", "null"), 10.0,
                        "Spectral fit: leave out matches whose misfit along the normal exceeds this many "
                        "root-median-square misfits of their cluster and more than the mark can move the "
                        "point (junk near the surface); null keeps every match, as the paper's fit does.",
-                       minimum=1),
+                       minimum=1, maximum=1e6),
     "epsilon": _p("number", 1e-6,
                   "Largest probability of accusing any innocent recipient, per suspect: a recipient is "
                   "named only when its fingerprint score clears the threshold this sets for the number "
@@ -127,7 +151,8 @@ DETECTION = _section("Detection (paper, section 2.2, Extraction).", {
 })
 
 KEY = _section("Key identity; the secret itself comes from POINTMARK_SECRET or secret_file.", {
-    "id": _p(("string", "null"), None, "Key id (public name of the key)."),
+    "id": _p(("string", "null"), None, "Key id (public name of the key): printable, at most 128 characters.",
+             minLength=1, maxLength=128, pattern=KEY_ID_PATTERN),
     "secret_file": _p(("string", "null"), None, "Path of a file holding the master secret."),
 })
 
@@ -152,10 +177,13 @@ OUTPUT = _section("Where results go; relative paths are relative to the working 
 
 DASK = _section("The Dask cluster that runs the graph.", {
     "address": _p(("string", "null"), None,
-                  "Scheduler address (tcp://HOST:PORT) of an existing cluster; null starts a LocalCluster."),
+                  "Scheduler address (tcp://HOST:PORT, tls://, ws://, wss:// or inproc://) of an existing "
+                  "cluster; null starts a LocalCluster.", pattern=ADDRESS_PATTERN),
     "n_workers": _p(("integer", "null"), None, "LocalCluster worker processes (null: CPU count).",
-                    minimum=1),
-    "memory_limit": _p("string", "auto", "Memory limit per LocalCluster worker."),
+                    minimum=1, maximum=1024),
+    "memory_limit": _p(("string", "integer"), "auto", "Memory limit per LocalCluster worker: auto, or bytes "
+                       "as Dask reads them (4GB, 512 MiB, 2e9; 0: no limit).", pattern=MEMORY_PATTERN,
+                       minimum=0),
     "progress": _p(["auto", "bar", "lines", "none"], "auto",
                    "auto: a live bar on a terminal, periodic lines otherwise."),
 })
@@ -163,7 +191,7 @@ DASK = _section("The Dask cluster that runs the graph.", {
 WORKFLOW = _section("Settings read only by the Snakefile.", {
     "assets": _p(("string", "null"), None, "Folder of asset files the catalogue rule records."),
     "catalogue": _p("string", "out/catalog.parquet", "Catalogue file the workflow builds and embeds from."),
-    "shards": _p("integer", 1, "Embedding shards (parallel snakemake jobs).", minimum=1),
+    "shards": _p("integer", 1, "Embedding shards (parallel snakemake jobs).", minimum=1, maximum=10_000),
     "stamps": _p("string", "out/stamps", "Folder of the rules' completion files and logs."),
 })
 
@@ -177,7 +205,8 @@ _METHODS = {
 
 EVALUATE = _section("The robustness evaluation (pointmark evaluate).", {
     "out": _p("string", "out/evaluate", "Folder of results.parquet, the plots and summary.md."),
-    "repetitions": _p("integer", 1, "Seeds per (model, attack, parameters, method).", minimum=1),
+    "repetitions": _p("integer", 1, "Seeds per (model, attack, parameters, method).", minimum=1,
+                      maximum=100_000),
     "methods": _METHODS,
     "experiments": {
         "description": "Each: models, attack chains ('+' joins steps, e.g. similarity+removal:0.139), "
@@ -188,19 +217,22 @@ EVALUATE = _section("The robustness evaluation (pointmark evaluate).", {
                       "name": {"type": "string"},
                       "models": {"type": "array", "items": {"type": "string"}, "minItems": 1},
                       "attacks": {"type": "array", "items": {"type": "string"}, "minItems": 1},
-                      "parameters": {"type": "array", "items": {"type": "object"}, "default": [{}]},
-                      "repetitions": {"type": "integer", "minimum": 1},
+                      "parameters": {"type": "array", "default": [{}],
+                                     "items": {"type": "object", "additionalProperties": False,
+                                               "properties": WATERMARK["properties"]}},
+                      "repetitions": {"type": "integer", "minimum": 1, "maximum": 100_000},
                       "methods": _METHODS,
                       "collusion": {"type": "array", "minItems": 1, "description":
                                     "Fingerprint trials instead of message trials: single, average:K, "
                                     "interleave:K (K colluders), unmarked, other-key (every recipient innocent).",
                                     "items": {"type": "string",
                                               "pattern": "^(single|unmarked|other-key|(average|interleave):[1-9][0-9]*)$"}},
-                      "recipients": {"type": "integer", "minimum": 1, "default": 1000,
+                      "recipients": {"type": "integer", "minimum": 1, "maximum": 1_000_000, "default": 1000,
                                      "description": "Recipients issued per asset in fingerprint trials."},
                   }},
     },
-    "false_positive_keys": _p("integer", 1000, "Wrong keys tried on each model (0: skip).", minimum=0),
+    "false_positive_keys": _p("integer", 1000, "Wrong keys tried on each model (0: skip).", minimum=0,
+                               maximum=10_000_000),
 })
 
 SCAN = _section("Leak-detection scans (pointmark scan).", {
@@ -211,12 +243,14 @@ SCAN = _section("Leak-detection scans (pointmark scan).", {
     "out": _p("string", "out/scan", "Detection manifests: one Parquet file per suspect."),
     "top_k": _p("integer", 5, "Candidate assets checked per suspect from each ranking (local-descriptor "
                 "votes, shape distribution); on the leak benchmark 3 left the leaked asset out for 5 of 217 "
-                "leaks, 5 for 1, at 8.5 asset checks per innocent suspect against 5.2.", minimum=1),
+                "leaks, 5 for 1, at 8.5 asset checks per innocent suspect against 5.2.", minimum=1,
+                maximum=1000),
     "shape_margin": _p("number", 1.6, "Assets whose shape-distribution distance is within this factor of "
                        "the nearest are also checked (near-identical assets), up to twice top_k from that "
-                       "ranking.", minimum=1.0),
+                       "ranking.", minimum=1.0, maximum=1000),
     "max_bit_errors": _p("integer", 3, "A decoded payload within this many bits of an issued one "
-                         "identifies its recipient.", minimum=0),
+                         "identifies its recipient.", minimum=0,
+                         maximum=256),
 })
 
 RECIPIENTS = {
@@ -238,6 +272,42 @@ SCHEMA = {
                    "workflow": WORKFLOW, "evaluate": EVALUATE,
                    "scan": SCAN},
 }
+
+
+class _Loader(yaml.SafeLoader):
+    """SafeLoader reading ``1e-9`` as a number (YAML 1.2) and refusing a key given twice."""
+
+    def construct_mapping(self, node, deep=False):
+        if isinstance(node, yaml.MappingNode):
+            seen = {}
+            for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    continue     # "<<: *base" then a key of its own overrides the base: allowed
+                key = self.construct_object(key_node, deep=True)
+                try:
+                    first = seen.get(key)
+                except TypeError:
+                    continue     # an unhashable key: SafeConstructor says so
+                if first is not None:
+                    raise yaml.constructor.ConstructorError(
+                        "while reading a mapping", node.start_mark,
+                        f"the key {_short(key)} is given twice (first on line {first + 1})", key_node.start_mark)
+                seen[key] = key_node.start_mark.line
+        return super().construct_mapping(node, deep)
+
+
+# YAML 1.1 wants a dot in a float ("1.0e-9"); YAML 1.2 and JSON do not ("1e-9")
+_Loader.add_implicit_resolver("tag:yaml.org,2002:float", re.compile(r"""^(?:
+     [-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
+    |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
+    |\.[0-9_]+(?:[eE][-+]?[0-9]+)?
+    |[-+]?[0-9][0-9_]*(?::[0-5]?[0-9])+\.[0-9_]*
+    |[-+]?\.(?:inf|Inf|INF)
+    |\.(?:nan|NaN|NAN))$""", re.X), list("-+0123456789."))
+
+
+def _yaml_load(text):
+    return yaml.load(text, Loader=_Loader)  # noqa: S506 (a SafeLoader)
 
 
 def register_section(name, section):
@@ -278,8 +348,8 @@ def _leaf_paths(schema, prefix=()):
 
 
 def _apply_set(cfg, assignment):
-    if "=" not in assignment:
-        raise ConfigError(f"--set {assignment!r}: expected NAME=VALUE")
+    if "=" not in assignment:    # not echoed: it may be a secret typed in the wrong place
+        raise ConfigError("--set: expected NAME=VALUE (the text given has no '=')")
     name, raw = assignment.split("=", 1)
     paths = [p for p in _leaf_paths(SCHEMA) if ".".join(p) == name or p[-1] == name]
     exact = [p for p in paths if ".".join(p) == name]
@@ -294,10 +364,11 @@ def _apply_set(cfg, assignment):
         node = node.setdefault(part, {})
         if not isinstance(node, dict):
             raise ConfigError(f"--set {name}: the config's {part!r} is not a mapping of keys")
+    value = "the value" if paths[0][0] == "key" else f"the value {_short(raw)}"
     try:
-        node[paths[0][-1]] = yaml.safe_load(raw)
+        node[paths[0][-1]] = _yaml_load(raw)
     except yaml.YAMLError as exc:
-        raise ConfigError(f"--set {name}: the value {raw!r} is not valid YAML: {_yaml_problem(exc)}") from None
+        raise ConfigError(f"--set {name}: {value} is not valid YAML: {_yaml_problem(exc)}") from None
 
 
 def load_config(path=None, overrides=()):
@@ -319,8 +390,11 @@ def load_config(path=None, overrides=()):
         path = Path(path)
         if not path.is_file():
             raise ConfigError(f"{path}: config file not found")
+        if path.stat().st_size > MAX_CONFIG_BYTES:
+            raise ConfigError(f"{path}: {path.stat().st_size} bytes; a config is at most {MAX_CONFIG_BYTES} "
+                              f"bytes (is this a config file?)")
         try:
-            user = yaml.safe_load(path.read_bytes().decode("utf-8")) or {}
+            user = _yaml_load(path.read_bytes().decode("utf-8")) or {}
         except UnicodeDecodeError as exc:
             raise ConfigError(f"{path}: not a UTF-8 text file (byte {exc.start})") from None
         except yaml.YAMLError as exc:
@@ -331,6 +405,7 @@ def load_config(path=None, overrides=()):
             raise ConfigError(f"{path}: the config must be a mapping of sections")
     for assignment in overrides:
         _apply_set(user, assignment)
+    user = _integral(user, SCHEMA)
     validate(user, source=str(path) if path else "config")
     cfg = _merge(_defaults(SCHEMA), user)
     validate(cfg, source=str(path) if path else "config")
@@ -339,17 +414,16 @@ def load_config(path=None, overrides=()):
 
 def validate(cfg, source="config"):
     """Raise :class:`ConfigError` naming the first invalid key."""
-    import jsonschema
-
     _check_values(cfg, source)
-    validator = jsonschema.Draft202012Validator(SCHEMA)
-    errors = sorted(validator.iter_errors(cfg),
+    _check_recipients(cfg, source)
+    errors = sorted(_validator().iter_errors(cfg),
                     key=lambda e: [(0, p, "") if isinstance(p, int) else (1, 0, str(p))
                                    for p in e.absolute_path])
     if errors:
-        err = errors[0]
+        err = _branch_error(errors[0])
         where = ".".join(str(p) for p in err.absolute_path) or "(top level)"
-        raise ConfigError(f"{source}: {where}: {_explain(err)}")
+        raise ConfigError(f"{source}: {where}: {_explain(err, where)}")
+    _check_dask(cfg.get("dask"), source)
     try:
         if isinstance(cfg.get("watermark"), dict):
             check_code(watermark_params(cfg))
@@ -367,6 +441,86 @@ def validate(cfg, source="config"):
 
 # YAML aliases can make a small file expand to a huge (or endless) tree.
 _MAX_VALUES = 100_000
+# a config is a page of settings: a larger file is refused before it is parsed
+MAX_CONFIG_BYTES = 1 << 20
+# the longest string value (a path, a name)
+MAX_STRING = 4096
+
+
+def _validator():
+    """Draft 2020-12, where a float is never an integer (1e300 is not a cluster count) and a
+    pattern's ``$`` is the end of the text (Python's also matches before a final newline)."""
+    import jsonschema
+
+    base = jsonschema.Draft202012Validator
+    checker = base.TYPE_CHECKER.redefine(
+        "integer", lambda _, v: isinstance(v, int) and not isinstance(v, bool))
+
+    def pattern(validator, regex, instance, schema):
+        if not isinstance(instance, str):
+            return
+        found = re.search(regex, instance)
+        if found is None or (regex.endswith("$") and found.end() != len(instance)):
+            yield jsonschema.ValidationError(f"{_short(instance)} {_PATTERN_HELP.get(regex, f'does not match {regex!r}')}")
+
+    return jsonschema.validators.extend(base, {"pattern": pattern}, type_checker=checker)(SCHEMA)
+
+
+def _integral(value, schema):
+    """``value`` with integer-valued floats made ints where ``schema`` wants an integer (6.0 -> 6)."""
+    kinds = schema.get("type")
+    kinds = [kinds] if isinstance(kinds, str) else kinds or []
+    if isinstance(value, float) and "integer" in kinds and "number" not in kinds:
+        return int(value) if value.is_integer() and abs(value) <= 2**53 else value
+    if isinstance(value, dict) and isinstance(schema.get("properties"), dict):
+        return {k: _integral(v, schema["properties"].get(k, {})) for k, v in value.items()}
+    if isinstance(value, list) and isinstance(schema.get("items"), dict):
+        return [_integral(v, schema["items"]) for v in value]
+    for branch in schema.get("oneOf", ()):
+        if _shape_fits(value, branch):
+            return _integral(value, branch)
+    return value
+
+
+def _shape_fits(value, schema):
+    """Whether ``value`` has the JSON shape of ``schema`` (null, array of numbers, array of arrays)."""
+    kind = schema.get("type")
+    if kind == "null":
+        return value is None
+    if kind != "array" or not isinstance(value, list):
+        return False
+    nested = schema.get("items", {}).get("type") == "array"
+    return all(isinstance(v, list) == nested for v in value)
+
+
+def _branch_error(err):
+    """For a ``oneOf`` miss (seeds), the error of the branch the value's shape chose."""
+    while err.validator == "oneOf" and err.context:
+        branches = err.schema["oneOf"]
+        chosen = [e for e in err.context if _shape_fits(err.instance, branches[e.schema_path[0]])]
+        if not chosen:
+            break
+        err = chosen[0]
+    return err
+
+
+def _check_recipients(cfg, source):
+    """Recipient ids, with the message of :func:`check_recipient` (before the schema's)."""
+    names = cfg.get("recipients")
+    for i, name in enumerate(names if isinstance(names, list) else ()):
+        try:
+            check_recipient(name, f"{source}: recipients.{i}")
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+
+
+def _check_dask(dask, source):
+    """What the patterns cannot say: a port is at most 65535."""
+    address = (dask or {}).get("address")
+    if isinstance(address, str) and not address.startswith("inproc://"):
+        port = int(address.rsplit(":", 1)[1])
+        if not 0 < port < 65536:
+            raise ConfigError(f"{source}: dask.address: port {port} is not in 1..65535")
 
 
 def _check_values(cfg, source):
@@ -379,8 +533,13 @@ def _check_values(cfg, source):
         if count > _MAX_VALUES:
             raise ConfigError(f"{source}: more than {_MAX_VALUES} values (YAML aliases expanding?)")
         key = ".".join(str(p) for p in where) or "(top level)"
+        shown = "the value" if where[:1] == ("key",) else repr(node)    # a secret may be pasted under key
         if isinstance(node, float) and not math.isfinite(node):
-            raise ConfigError(f"{source}: {key}: {node!r} is not a finite number")
+            raise ConfigError(f"{source}: {key}: {shown} is not a finite number")
+        if isinstance(node, str) and "\0" in node:
+            raise ConfigError(f"{source}: {key}: the text holds a NUL byte (no path or name may)")
+        if isinstance(node, str) and len(node) > MAX_STRING:
+            raise ConfigError(f"{source}: {key}: {len(node)} characters; at most {MAX_STRING}")
         if isinstance(node, (dict, list)):
             if id(node) in above:
                 raise ConfigError(f"{source}: {key}: a YAML alias refers to itself")
@@ -388,7 +547,8 @@ def _check_values(cfg, source):
             if isinstance(node, dict):
                 for k, v in node.items():
                     if not isinstance(k, str):
-                        raise ConfigError(f"{source}: {key}: the key {k!r} is not a string")
+                        name = "" if where[:1] == ("key",) else f" {_short(k)}"
+                        raise ConfigError(f"{source}: {key}: the key{name} is not a string")
                     stack.append((v, where + (k,), inside))
             else:
                 stack.extend((v, where + (i,), inside) for i, v in enumerate(node))
@@ -407,12 +567,27 @@ def _yaml_problem(exc):
     return text
 
 
-def _explain(err):
+def _explain(err, where):
+    """The schema's message, its value shortened; under ``key`` (a secret may be pasted there) not shown."""
+    hidden = where.split(".")[0] == "key"
     if err.validator == "additionalProperties":
         extra = sorted(set(err.instance) - set(err.schema.get("properties", {})))
         known = ", ".join(sorted(err.schema.get("properties", {})))
-        return f"unknown key(s) {', '.join(extra)}; known keys: {known}"
-    return err.message
+        names = (f"{len(extra)} (names not shown)" if hidden else
+                 ", ".join(k if k.isprintable() and len(k) <= 40 else _short(k, 40) for k in extra))
+        return f"unknown key(s) {names}; known keys: {known}"
+    shown, message = repr(err.instance), err.message
+    if message.startswith(shown):
+        return ("the value (not shown)" if hidden else _short(err.instance)) + message[len(shown):]
+    if hidden:
+        return f"the value (not shown) fails the schema's {err.validator!r} check"
+    return message if len(message) <= 300 else message[:297] + "..."
+
+
+def _short(value, limit=60):
+    """``repr(value)``, cut to about ``limit`` characters (escaped: no control characters)."""
+    text = repr(value)
+    return text if len(text) <= limit else f"{text[:limit - 5]}...{text[-2:]}"
 
 
 def watermark_params(cfg):

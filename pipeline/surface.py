@@ -97,14 +97,12 @@ def parse_attack(text):
     if name not in ATTACK_NAMES:
         raise ValueError(f"unknown attack {name!r}; known: {', '.join(ATTACK_NAMES)}")
     if not value:
-        return name, None
+        return name, attacks.check_strength(name, None)
     try:
         strength = float(value[:-1]) / 100.0 if value.endswith("%") else float(value)
     except ValueError:
-        raise ValueError(f"attack {text!r}: strength {value!r} is not a number") from None
-    if not np.isfinite(strength) or strength < 0:
-        raise ValueError(f"attack {text!r}: the strength must be a finite number >= 0")
-    return name, strength
+        raise ValueError(f"attack {text[:40]!r}: strength {value[:20]!r} is not a number") from None
+    return name, attacks.check_strength(name, strength)     # type, finiteness and range
 
 
 def apply_chain(points, chain, rng=None, *, faces=None):

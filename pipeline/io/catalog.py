@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 
 from ..kernels.descriptor import d2_descriptor
@@ -22,7 +23,9 @@ from .manifest import CATALOG_SCHEMA, write_rows
 from .pointcloud import FORMATS, InputError, format_of, read_points, sha256_file
 
 __all__ = ["Asset", "discover_assets", "catalogue_record", "write_catalogue", "read_catalogue",
-           "check_recipient", "RECIPIENT_PATTERN", "list_suspects"]
+           "check_recipient", "RECIPIENT_PATTERN", "list_suspects", "check_catalogue_out"]
+
+LEAVES_FOLDER = "symlink leaves the catalogue folder (not read)"
 
 # a recipient id is a folder name under output.dir: no separators, no "..", no leading dot
 RECIPIENT_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._@+-]{0,127}$"
@@ -32,10 +35,16 @@ def check_recipient(name, where):
     """Raise InputError unless ``name`` is a safe recipient id (names ``where`` it came from)."""
     import re
 
-    if not isinstance(name, str) or not re.match(RECIPIENT_PATTERN, name) or ".." in name:
-        raise InputError(f"{where}: recipient {name!r} is not a valid id (letters, digits and . _ @ + -, "
+    if not isinstance(name, str) or not re.fullmatch(RECIPIENT_PATTERN, name) or ".." in name:   # not "a\n"
+        raise InputError(f"{where}: recipient {_short(name)} is not a valid id (letters, digits and . _ @ + -, "
                          f"starting with a letter or digit, no '..', at most 128 characters)")
     return name
+
+
+def _short(value, limit=60):
+    """``repr(value)``, cut to about ``limit`` characters."""
+    text = repr(value)
+    return text if len(text) <= limit else f"{text[:limit - 5]}...{text[-2:]}"
 
 
 @dataclass(frozen=True)
@@ -43,6 +52,7 @@ class Asset:
     key: str
     path: Path
     recipients: tuple = field(default=())
+    error: str | None = None       # why the file is refused unread (a link out of the folder)
 
 
 def discover_assets(source, *, default_recipients=()):
@@ -60,19 +70,24 @@ def discover_assets(source, *, default_recipients=()):
     """
     source_text = str(source)
     path = Path(source_text)
+    if "\0" in source_text:
+        raise InputError(f"{source_text!r}: a path holds no NUL byte")
     if path.suffix.lower() in (".parquet", ".csv") and path.is_file():
         assets = _from_catalogue_file(path, tuple(default_recipients))
     elif path.is_dir():
         files = [p for p in path.rglob("*") if p.suffix.lower() in FORMATS and p.is_file()
                  and not p.name.startswith(".")]
-        assets = [Asset(p.relative_to(path).with_suffix("").as_posix(), p, tuple(default_recipients))
-                  for p in files]
+        inside = os.path.realpath(path)
+        assets = [Asset(p.relative_to(path).with_suffix("").as_posix(), p, tuple(default_recipients),
+                        None if _within(p, inside) else f"{p}: {LEAVES_FOLDER}") for p in files]
     elif path.is_file() and path.suffix.lower() in FORMATS:
         assets = [Asset(path.stem, path, tuple(default_recipients))]     # one file: a catalogue of one
     elif any(ch in source_text for ch in "*?["):
         files = [Path(p) for p in glob.glob(source_text, recursive=True)
                  if Path(p).suffix.lower() in FORMATS]
         assets = [Asset(p.stem, p, tuple(default_recipients)) for p in files]
+    elif not path.exists() and not path.is_symlink():
+        raise InputError(f"{source_text}: no such catalogue file or folder")
     else:
         raise InputError(f"{source_text}: not a folder, a glob or a catalogue file (.parquet, .csv)")
     keys = [a.key for a in assets]
@@ -82,19 +97,28 @@ def discover_assets(source, *, default_recipients=()):
     return sorted(assets, key=lambda a: a.key)
 
 
+def _within(path, inside):
+    """Whether ``path``, its links followed, lies in the folder ``inside`` (a real path)."""
+    return os.path.commonpath([os.path.realpath(path), inside]) == inside
+
+
 def _from_catalogue_file(path, default_recipients):
-    if path.suffix.lower() == ".parquet":
-        rows = pq.read_table(path).to_pylist()
-    else:
-        with open(path, newline="") as f:
-            rows = list(csv.DictReader(f))
-        for row in rows:
-            text = row.get("recipients") or ""
-            row["recipients"] = [r for r in text.split(";") if r]
+    rows = _parquet_rows(path) if path.suffix.lower() == ".parquet" else _csv_rows(path)
     assets = []
     for i, row in enumerate(rows):
-        if not row.get("asset_key") or not row.get("path"):
+        if not isinstance(row, dict) or not row.get("asset_key") or not row.get("path"):
             raise InputError(f"{path}: row {i} lacks asset_key or path")
+        if not isinstance(row["path"], str) or "\0" in row["path"]:
+            raise InputError(f"{path}: row {i}: path is not a text path")
+        if not isinstance(row["asset_key"], (str, int)) or isinstance(row["asset_key"], bool):
+            raise InputError(f"{path}: row {i}: asset_key is not text")
+        names = row.get("recipients")
+        if names is not None and (not isinstance(names, list) or not all(isinstance(r, str) for r in names)):
+            # a string here would be read letter by letter: 'alice' as a, l, i, c, e
+            raise InputError(f"{path}: row {i}: recipients is not a list of names "
+                             f"(got {type(names).__name__}); in Parquet a list<string> column")
+        for r in names or ():
+            check_recipient(r, f"{path}: row {i}")
         key = str(row["asset_key"])
         if Path(key).is_absolute() or ".." in Path(key).parts or "\\" in key or not key.strip():
             raise InputError(f"{path}: row {i}: asset key {key!r} would leave the output folder (absolute, "
@@ -107,9 +131,52 @@ def _from_catalogue_file(path, default_recipients):
     return assets
 
 
+def _parquet_rows(path):
+    """Rows of a Parquet catalogue; a file that is not one is refused with one line."""
+    try:
+        return pq.read_table(path).to_pylist()
+    except (pa.ArrowException, OSError, ValueError) as exc:
+        text = " ".join(str(exc).split())[:120]
+        raise InputError(f"{path}: not a readable Parquet catalogue ({text})") from None
+
+
+def _csv_rows(path):
+    """Rows of a UTF-8 CSV catalogue, recipients split at ';'."""
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as f:
+            rows = list(csv.DictReader(f))
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{path}: not a UTF-8 CSV catalogue (byte {exc.start})") from None
+    except csv.Error as exc:
+        raise InputError(f"{path}: not a readable CSV catalogue ({' '.join(str(exc).split())[:120]})") from None
+    for i, row in enumerate(rows):
+        if None in row:
+            raise InputError(f"{path}: row {i}: more fields than the header names")
+        text = row.get("recipients") or ""
+        row["recipients"] = [r for r in text.split(";") if r]
+    return rows
+
+
+def check_catalogue_out(out):
+    """Refuse a catalogue output path before any asset is read (a folder, not .parquet, unwritable)."""
+    out = Path(out)
+    if out.is_dir():
+        raise InputError(f"{out}: is a folder; give the catalogue file's name")
+    if out.suffix.lower() != ".parquet":
+        raise InputError(f"{out}: the catalogue is written as Parquet (.parquet)")
+    parent = out.parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(f"{out}: the folder {parent} is not writable")
+    return out
+
+
 def catalogue_record(asset):
-    """Catalogue row of one asset (a failed row, with the error, if unreadable)."""
+    """Catalogue row of one asset (a failed row, with the error, if unreadable or refused unread)."""
     row = {"asset_key": asset.key, "path": str(asset.path), "recipients": list(asset.recipients)}
+    if asset.error:
+        return {**row, "status": "failed", "error": asset.error}
     try:
         cloud = read_points(asset.path)
     except InputError as exc:

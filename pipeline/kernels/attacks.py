@@ -13,7 +13,8 @@ from scipy.spatial import cKDTree
 __all__ = [
     "rotation_matrix", "similarity", "paper_similarity", "random_similarity", "noise_uniform",
     "noise_gaussian", "removal", "crop_plane", "crop", "quantize", "smooth", "shuffle", "apply_chain", "ATTACKS",
-    "outliers", "scene", "clutter", "random_rotation", "sample_triangles",
+    "outliers", "scene", "clutter", "random_rotation", "sample_triangles", "STRENGTHS", "check_strength",
+    "chain_size", "MAX_POINTS", "MAX_GROWTH",
 ]
 
 
@@ -351,6 +352,89 @@ ATTACKS = {
 }
 
 
+# name -> (whole number?, lowest, highest, lowest allowed?) of the strength; absent: takes none
+STRENGTHS = {
+    "noise": (False, 0.0, 1.0, True),             # share of phi
+    "gaussian_noise": (False, 0.0, 1.0, True),
+    "removal": (False, 0.0, 1.0, False),          # share of the points kept
+    "crop": (False, 0.0, 1.0, False),
+    "quantize": (True, 1, 52, True),              # bits per coordinate (a double holds 52)
+    "smooth": (True, 0, 1000, True),              # iterations
+    "outliers": (False, 0.0, 100.0, True),        # points added per point
+    "clutter": (False, 0.0, 100.0, True),
+    "resample": (True, 1, None, True),            # points (bounded by chain_size)
+    "simplify": (True, 1, None, True),            # vertices
+}
+# an attacked copy holds at most this many points, and at most this many times the input's
+MAX_POINTS = 50_000_000
+MAX_GROWTH = 100
+
+
+def check_strength(name, strength):
+    """Check an attack's strength before any point is read.
+
+    Parameters
+    ----------
+    name : str
+    strength : float or None
+
+    Returns
+    -------
+    float, int or None
+        The strength, as an int for the counted attacks (``quantize:8.0`` -> 8).
+
+    Raises
+    ------
+    ValueError
+        Naming the attack, the strength and the range.
+    """
+    if name not in STRENGTHS:
+        if strength is not None:
+            raise ValueError(f"{name} takes no strength (got {strength:g})")
+        return None
+    whole, low, high, closed = STRENGTHS[name]
+    if strength is None:
+        raise ValueError(f"attack {name!r} needs a strength, e.g. {name}:{1000 if whole else 0.5}")
+    if not np.isfinite(strength):
+        raise ValueError(f"{name}: the strength {strength!r} is not a finite number")
+    if whole and float(strength) != int(strength):
+        raise ValueError(f"{name}: the strength {strength:g} is not a whole number")
+    high = MAX_POINTS if high is None else high
+    if strength < low or (strength == low and not closed) or strength > high:
+        side = "[" if closed else "("
+        raise ValueError(f"{name}: the strength {strength:g} is outside {side}{low:g}, {high:g}]")
+    return int(strength) if whole else float(strength)
+
+
+def chain_size(chain, n_points):
+    """Points a chain leaves at most, refused above ``MAX_POINTS`` or ``MAX_GROWTH`` times the input.
+
+    Parameters
+    ----------
+    chain : list of (str, float or None)
+        Checked strengths.
+    n_points : int
+        Points of the input.
+
+    Returns
+    -------
+    int
+    """
+    bound = min(MAX_POINTS, MAX_GROWTH * n_points)
+    n = n_points
+    for name, strength in chain:
+        if name in ("removal", "crop"):
+            n = max(1, int(np.ceil(strength * n)))
+        elif name in ("outliers", "clutter"):
+            n = n + int(round(strength * n)) + (40 if name == "clutter" else 0)
+        elif name in ("resample", "simplify"):
+            n = int(strength)
+        if n > bound:
+            raise ValueError(f"{name}:{strength:g} would make {n} points; at most {bound} (the smaller of "
+                             f"{MAX_POINTS} and {MAX_GROWTH} times the input's {n_points})")
+    return n
+
+
 def apply_chain(points, chain, rng=None):
     """Apply ``[(name, strength or None), ...]`` in order with one generator.
 
@@ -369,7 +453,6 @@ def apply_chain(points, chain, rng=None):
         if name not in ATTACKS:
             raise ValueError(f"unknown attack {name!r}; known: {sorted(ATTACKS)}")
         func, needs = ATTACKS[name]
-        if needs and strength is None:
-            raise ValueError(f"attack {name!r} needs a strength, e.g. {name}:0.5")
+        strength = check_strength(name, strength)
         points = func(points, strength, rng) if needs else func(points, rng)
     return points
