@@ -437,8 +437,7 @@ def _notices(ref, others):
         n = sum(len(v) for v in ref["untrusted"].values())
         lines.append(f"{n} ledger row(s) set aside as untrusted (row MAC missing or wrong), never used to accuse: "
                      + ", ".join(f"{part} ({len(v)})" for part, v in sorted(ref["untrusted"].items())))
-    held_keys = {r["key_fingerprint"] for rows in ref["issued"].values() for r in rows}
-    unheld = [r for rows in ref["unheld"].values() for r in rows if r["key_fingerprint"] not in held_keys]
+    unheld = [r for rows in ref["unheld"].values() for r in rows]
     if unheld:
         lines.append(f"unchecked: {unheld_summary(unheld)}, which the secret does not open: suspects that may "
                      f"be one of them read inconclusive, never no match (scan again with that secret)")

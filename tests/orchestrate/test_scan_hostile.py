@@ -10,6 +10,7 @@ import contextlib
 import os
 import re
 import shutil
+import stat
 from pathlib import Path
 
 import pyarrow as pa
@@ -103,6 +104,10 @@ def _hostile_folder(world):
     (folder / "evil\n| match | asset-0 | mallory (exact copy) | 9 | 0 | 9 | 2 | - |\n.xyz").write_text("1 2 3\n")
     (folder / "pipes.pts").write_text("| match | asset-0 | mallory (exact copy) | 9 / 1 | 0 |\n1 2 3\n")
     (folder / "notes.txt.md").write_text("not a suspect\n")
+    os.link(world / "secret.key", folder / "hard.xyz")                  # a hard link cannot be told from a file
+    part = Ledger(world / "out" / "manifests").parts()[0]
+    shutil.copy(part, folder / "ledger-part.ply")                       # the ledger's own part, as a suspect
+    (folder / "few.xyz").write_text("1 2 3\n4 5 6\n")                   # two points
     return folder
 
 
@@ -125,10 +130,12 @@ def test_every_file_is_scanned_whatever_its_stem_and_hostile_ones_are_refused_un
     assert rows["d\u00fcp\u20ac \u0645.pcd"]["recipient"] == "alice"
     for name, why in REFUSED.items():
         assert rows[name]["verdict"] == "failed" and why in rows[name]["error"] and name in rows[name]["error"]
+    for name, why in {"hard.xyz": "hard.xyz", "ledger-part.ply": "ledger-part.ply", "few.xyz": "too few"}.items():
+        assert rows[name]["verdict"] == "failed" and why in rows[name]["error"], rows[name]
     assert "1 file(s) of other formats" in err
     # a second scan comes back at once: the FIFO is never opened, and the failures are retried
     code, out, err, rows = _cli(capsys, _scan(world, "hostile"))
-    assert code == 3 and f"{len(REFUSED) + 2} failed" in out and "3 already scanned" in out, out
+    assert code == 3 and f"{len(REFUSED) + 5} failed" in out and "3 already scanned" in out, out
 
 
 @pytest.mark.parametrize("leak", ["secret", "passwd", "forged row"])
@@ -150,7 +157,8 @@ def test_no_file_content_and_no_forged_row_reaches_the_results_or_report(world, 
 
 def test_a_suspects_folder_that_is_the_scan_output_or_a_glob_matching_nothing_is_refused_first(world, capsys):
     (world / "self.out" / "results").mkdir(parents=True)
-    for suspects in (world / "self.out", world / "self.out" / "results", str(world / "none-*.ply")):
+    for suspects in (world / "self.out", world / "self.out" / "results", str(world / "none-*.ply"),
+                     str(world / "out" / "manifests" / "copies" / "*")):          # the ledger's own parts
         code, _, err, _ = _cli(capsys, _scan(world, "self", suspects))
         assert code == 2 and len(err.strip().splitlines()) == 1 and "scan.suspects" in err, err
     assert not list((world / "self.out" / "results").iterdir())
@@ -240,3 +248,49 @@ def test_copies_under_a_key_not_held_are_said_and_never_read_no_match(world, cap
     code, out, err, rows = _cli(capsys, _scan(w, "rotated", secret_file=w / "secret.key"))
     assert code == 1, out + err
     assert rows["old-leak.ply"]["verdict"] == "match" and rows["old-leak.ply"]["recipient"] == "bob"
+
+
+# -- the listing alone: nothing is opened ---------------------------------------------------------------------
+
+def _entry(folder, cause):
+    if cause == "FIFO":
+        os.mkfifo(folder / "s.ply")
+    elif cause == "device":
+        try:
+            os.mknod(folder / "s.ply", 0o600 | stat.S_IFCHR, os.makedev(1, 3))
+        except PermissionError:
+            pytest.skip("no permission to make a device node")
+    elif cause == "link out":
+        (folder / "s.ply").symlink_to("/etc/hostname")
+    elif cause == "link into a linked folder":
+        (folder / "sub").symlink_to(folder.parent)
+        (folder.parent / "s.ply").write_text("1 2 3\n")
+        return "sub/s.ply"
+    elif cause == "broken link":
+        (folder / "s.ply").symlink_to("missing.ply")
+    elif cause == "empty":
+        (folder / "s.ply").write_bytes(b"")
+    elif cause == "folder":
+        (folder / "s.ply").mkdir()
+    return "s.ply"
+
+
+@pytest.mark.parametrize("cause, why", [("FIFO", "a FIFO"), ("device", "a character device"),
+                                        ("link out", "leads out"), ("link into a linked folder", "leads out"),
+                                        ("broken link", "broken"), ("empty", "empty"), ("folder", "a folder")])
+def test_a_hostile_entry_is_listed_with_its_refusal_and_never_opened(tmp_path, cause, why):
+    from pipeline.io.catalog import list_suspects
+
+    folder = tmp_path / "suspects"
+    folder.mkdir()
+    (folder / "x.xyz").write_text("1 2 3\n")
+    (folder / "x.obj").write_text("v 1 2 3\n")
+    (folder / "loop").symlink_to(folder)                                 # a link loop: never followed
+    name = _entry(folder, cause)
+    suspects, _ = list_suspects(f"{folder}/**/*.*")                       # "**" follows no link to a folder
+    found = {p.relative_to(folder).as_posix(): reason for p, reason in suspects}
+    assert found["x.xyz"] is None and found["x.obj"] is None            # same stem: two suspects
+    assert not any(k.startswith("loop/") for k in found)
+    if "/" in name:                                                      # a wildcard folder does follow it
+        found = {p.relative_to(folder).as_posix(): why for p, why in list_suspects(f"{folder}/*/*.ply")[0]}
+    assert why in found[name]
