@@ -23,7 +23,7 @@ import numpy as np  # noqa: E402
 
 from . import __version__, config as config_mod
 from .io.pointcloud import InputError, check_distinct, check_output, read_points, write_points
-from .io.ledger import LedgerError
+from .io.ledger import Ledger, LedgerError
 from .io.secrets import SecretError, check_key_id, load_secret
 from .kernels import keys, modulation
 from .watermark import ReferenceMismatch, WatermarkError, detect, distortion, embed, params_record
@@ -101,6 +101,13 @@ def build_parser():
     b.add_argument("--out", required=True, help="catalogue Parquet file to write")
     b.add_argument("--recipients", default="", help="comma-separated recipients for every asset")
     b.set_defaults(func=cmd_catalog_build)
+
+    p = sub.add_parser("ledger", help="the issuance ledger")
+    lsub = p.add_subparsers(dest="ledger_command", required=True)
+    s = lsub.add_parser("seal", help="MAC the rows written before rows carried one (once, after upgrading)")
+    s.add_argument("ledger", help="the ledger folder (output.manifests)")
+    s.add_argument("--secret-file", help="file holding the master secret (else $POINTMARK_SECRET)")
+    s.set_defaults(func=cmd_ledger_seal)
 
     p = sub.add_parser("demo", help="generate the demo catalogue, watermark it, detect, summarise")
     p.add_argument("--dir", default="catalog/demo", help="where the demo catalogue is generated")
@@ -402,6 +409,19 @@ def cmd_catalog_build(args):
     for r in failed:
         print(f"  failed: {r['error']}", file=sys.stderr)
     return 1 if failed else 0
+
+
+def cmd_ledger_seal(args):
+    """Seal a ledger's rows that predate row MACs; only the secret's holder can, and vouches for them."""
+    from .kernels.keys import ledger_mac_key
+
+    ledger = Ledger(args.ledger)
+    if not ledger.parts():
+        raise InputError(f"{args.ledger}: no ledger part files here (is it output.manifests of a run?)")
+    secret = load_secret(args.secret_file)
+    n = ledger.seal(ledger_mac_key(secret))
+    print(f"{args.ledger}: sealed {n} row(s) that carried no MAC" if n else f"{args.ledger}: every row carries a MAC")
+    return 0
 
 
 def cmd_demo(args):

@@ -52,3 +52,23 @@ def test_rows_older_than_macs_are_sealed_once_and_then_verify(tmp_path):
     assert rows[0]["row_mac"] != rows[1]["row_mac"]
     ledger.append([{**row, "recipient": "carol", "schema_version": None}], mac_key=key)
     assert all(r["row_mac"] == row_mac(key, r, MAC_FIELDS) for r in ledger.rows())
+
+
+def test_the_seal_command_needs_the_secret_and_a_ledger(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    from tests.conftest import ROOT
+
+    env = dict(os.environ, PYTHONPATH=str(ROOT), POINTMARK_SECRET="a master secret of 24 bytes")
+    res = subprocess.run([sys.executable, "-m", "pipeline.cli", "ledger", "seal", str(tmp_path)], env=env,
+                         capture_output=True, text=True)
+    assert res.returncode == 2 and str(tmp_path) in res.stderr and "no ledger part" in res.stderr
+    Ledger(tmp_path).append([{"asset_key": "a", "recipient": "r", "key_id": "k", "status": "ok",
+                              "key_salt": "0" * 32, "key_fingerprint": "1" * 16, "source_sha256": "2" * 64,
+                              "output_sha256": "3" * 64}])
+    res = subprocess.run([sys.executable, "-m", "pipeline.cli", "ledger", "seal", str(tmp_path)], env=env,
+                         capture_output=True, text=True)
+    assert res.returncode == 0 and "sealed 1 row" in res.stdout
+    assert Ledger(tmp_path).rows()[0]["row_mac"] is not None
