@@ -94,7 +94,7 @@ def cases():
     add(P, "valid binary PLY (control)", {"a.ply": good}, embed("a.ply"), ok=True)
     add(P, "valid ASCII PLY (control)", {"a.ply": ply(pts, "ascii")}, embed("a.ply"), ok=True)
     add(P, "garbage bytes", {"a.ply": b"\x00\x01garbage"}, embed("a.ply"), "a.ply", "not a PLY")
-    add(P, "empty file", {"a.ply": b""}, embed("a.ply"), "a.ply", "not a PLY")
+    add(P, "empty file", {"a.ply": b""}, embed("a.ply"), "a.ply", "the file is empty")
     add(P, "magic only", {"a.ply": b"ply\n"}, embed("a.ply"), "a.ply", "not a PLY")
     add(P, "no end_header", {"a.ply": good.replace(b"end_header", b"end_headr")}, embed("a.ply"), "a.ply")
     add(P, "unknown format", {"a.ply": good.replace(b"binary_little_endian", b"binary_middle_endian")},
@@ -131,7 +131,7 @@ def cases():
                                                    b"property float y\nproperty float z\nproperty uchar red\n"
                                                    b"end_header\n0 0 0 300\n"}, embed("a.ply"), "a.ply", "red")
     add(P, "ascii word instead of a number", {"a.ply": ply(pts, "ascii").replace(b"\n0.", b"\nabc", 1)},
-        embed("a.ply"), "a.ply", "bad vertex line")
+        embed("a.ply"), "a.ply", "is not a number")
     add(P, "NaN coordinates", {"a.ply": ply(np.where(np.arange(3000)[:, None] == 7, np.nan, pts))},
         embed("a.ply"), "a.ply", "NaN or infinite")
     add(P, "infinite coordinates", {"a.ply": ply(np.where(np.arange(3000)[:, None] == 9, np.inf, pts))},

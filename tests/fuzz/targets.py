@@ -117,6 +117,34 @@ def seeds_pcd(data_dir):
     return out
 
 
+def seeds_pcd_compressed(data_dir):
+    """binary_compressed (LZF) PCDs, float32 and float64, some with an extra field."""
+    from pipeline.io.pcd import read_pcd, write_pcd
+
+    out = []
+    for data in seeds_pcd(data_dir):
+        if b"DATA binary\n" in data:
+            pcd = read_pcd(data)
+            pcd.encoding = "binary_compressed"
+            out.append(write_pcd(pcd, pcd.points).replace(b"DATA binary\n", b"DATA binary_compressed\n"))
+    return out
+
+
+def seeds_obj(data_dir):
+    """OBJ meshes cut from the real PLY meshes: v lines, then 1-based and negative f lines."""
+    out = []
+    for i, (_, ply) in enumerate(_real_plys(data_dir)[:6]):
+        faces = ply.faces() if len(ply.elements) > 1 else np.zeros((0, 3), dtype=np.int64)
+        faces = faces[(faces < SEED_POINTS).all(axis=1)][:SEED_POINTS]
+        v = "".join(f"v {x!r} {y!r} {z!r}\n" for x, y, z in ply.points[:SEED_POINTS].tolist())
+        if i % 2:
+            f = "".join(f"f {a - SEED_POINTS} {b - SEED_POINTS} {c - SEED_POINTS}\n" for a, b, c in faces.tolist())
+        else:
+            f = "".join(f"f {a + 1}//{a + 1} {b + 1} {c + 1}/1\n" for a, b, c in faces.tolist())
+        out.append(("# cut from a real scan\n" + v + f).encode())
+    return out
+
+
 def seeds_xyz_pts(data_dir):
     out = []
     for i, pts in enumerate(_real_points(data_dir)):
@@ -126,6 +154,7 @@ def seeds_xyz_pts(data_dir):
             out.append((".pts", (f"{len(rows)}\n" + "\n".join(rows) + "\n").encode()))
         else:
             out.append((".xyz", ("\n".join(rows) + "\n").encode()))
+    out.append((".xyz", ("\r\n".join(rows) + "\r\n").encode()))        # CRLF is read; CR-only refused
     return out
 
 
@@ -149,14 +178,15 @@ def seeds_config(_data_dir=None):
 
 # -- mutations ------------------------------------------------------------------------------------
 
-INTERESTING_NUMBERS = [b"0", b"1", b"-1", b"2", b"3", b"47", b"49", b"255", b"256", b"65535", b"2147483647",
+INTERESTING_NUMBERS = [b"0", b"1", b"-1", b"-1500", b"2", b"3", b"999999", b"1_0", b"+5", b"1.5", b"47", b"49", b"255", b"256", b"65535", b"2147483647",
                        b"4294967295", b"4294967296", b"18446744073709551617", b"99999999999999999999",
                        b"1e308", b"1e-320", b"nan", b"inf", b"-inf", b"-0", b"0.5", b"", b"x"]
 INTERESTING_INTS = [0, 1, 2, 3, 0x7F, 0x80, 0xFF, 0x7FFF, 0xFFFF, 0x7FFFFFFF, 0xFFFFFFFF, 2**63 - 1, 2**64 - 1]
 KEYWORDS = [b"float", b"double", b"uchar", b"int", b"uint", b"list", b"char", b"ascii", b"binary",
             b"binary_little_endian", b"binary_big_endian", b"vertex", b"face", b"x", b"y", b"z", b"property",
             b"element", b"end_header", b"F", b"I", b"U", b"8", b"4", b"DATA", b"POINTS", b"WIDTH", b"HEIGHT",
-            b"FIELDS", b"binary_compressed", b"\n", b" ", b"\r\n", b"\t", b"#", b"\x00"]
+            b"FIELDS", b"binary_compressed", b"\n", b" ", b"\r\n", b"\t", b"#", b"\x00", b"\r", b"|", b"`",
+            b"\xff\xfe", b"\x1f\x8b", b"f", b"v", b"nan"]
 YAML_VALUES = [".nan", ".inf", "-.inf", "-1", "0", "1", "1e400", "[]", "{}", "~", "'x'", "*a", "&a [*a]",
                "!!binary AA==", "!!python/object:os.system", "0x10", "2024-01-01", "yes", "1_000",
                "[1, 2, 3]", "{a: 1}", "\"\\u0000\"", "-0.0", "1e-320", "99999999999999999999999", "true",
@@ -214,7 +244,7 @@ def mutated_yaml(draw, seeds):
     lines = text.splitlines()
     for _ in range(draw(st.integers(1, 5))):
         op = draw(st.sampled_from(["value", "value", "value", "delete", "duplicate", "indent", "insert",
-                                   "swap", "text"]))
+                                   "swap", "text", "dupkey"]))
         if not lines:
             lines = [""]
         i = draw(st.integers(0, len(lines) - 1))
@@ -225,6 +255,12 @@ def mutated_yaml(draw, seeds):
             del lines[i]
         elif op == "duplicate":
             lines.insert(i, lines[i])
+        elif op == "dupkey":            # a key given twice in its mapping, with another value
+            keyed = [k for k, line in enumerate(lines) if re.match(r"\s*[A-Za-z_]+:", line)]
+            if keyed:
+                k = draw(st.sampled_from(keyed))
+                key = lines[k].split(":", 1)[0]
+                lines.insert(k + 1, f"{key}: {draw(st.sampled_from(YAML_VALUES))}")
         elif op == "indent":
             lines[i] = draw(st.sampled_from(["", " ", "  ", "\t", "    "])) + lines[i].lstrip()
         elif op == "insert":
@@ -252,10 +288,13 @@ def _clean_folder(folder):
             p.unlink()
 
 
-def _one_line(exc, path):
+def _one_line(exc, path, markup=False):
+    """One line naming ``path``; with ``markup``, no table or code markup from the file's content."""
     message = str(exc)
     if "\n" in message or "\r" in message or not message.startswith(f"{path}:"):
         raise FuzzFailure(f"unclean message for {path}: {message!r}")
+    if markup and set(message[len(str(path)) + 1:]) & set("|`"):
+        raise FuzzFailure(f"the message for {path} quotes markup: {message!r}")
 
 
 def check_points_file(data, suffix, folder):
@@ -268,7 +307,7 @@ def check_points_file(data, suffix, folder):
         try:
             cloud = read_points(path)
         except InputError as exc:
-            _one_line(exc, path)
+            _one_line(exc, path, markup=True)
             return "error"
         pts = cloud.points
         if not (isinstance(pts, np.ndarray) and pts.ndim == 2 and pts.shape[1] == 3 and len(pts) > 0
@@ -340,6 +379,8 @@ TARGETS = {t.name: t for t in [
     Target("ply_ascii", seeds_ply_ascii, ".ply"),
     Target("ply_binary", seeds_ply_binary, ".ply"),
     Target("pcd", seeds_pcd, ".pcd"),
+    Target("pcd_compressed", seeds_pcd_compressed, ".pcd"),
+    Target("obj", seeds_obj, ".obj"),
     Target("xyz_pts", seeds_xyz_pts, None),
     Target("las_laz", seeds_las, None),
     Target("config", seeds_config, None, config=True),
