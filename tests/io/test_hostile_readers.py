@@ -21,7 +21,6 @@ import numpy as np
 import pytest
 
 from pipeline.cli import main
-from pipeline.io import pointcloud
 from pipeline.io.pcd import lzf_compress
 from pipeline.io.pointcloud import InputError, read_points, write_points
 from tests.conftest import ROOT
@@ -357,10 +356,6 @@ def test_a_failed_write_names_the_file_and_leaves_nothing(tmp_path):
     for name, message in zip(names, messages):
         assert message == f"{tmp_path / 'out' / name}: cannot write: {os.strerror(errno.EFBIG).lower()}", message
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["e.ply"]   # 10 points fit in 4 KiB
-
-
-def test_the_write_error_text_is_the_os_reason():
-    assert pointcloud._reason(OSError(errno.ENOSPC, "x")) == "no space left on device"
 
 
 # -- cause: faces that index a vertex the mesh does not have -------------------------------------------
