@@ -111,7 +111,8 @@ def render_match(original, suspect, registration, clusters, cluster_scores, titl
         ax.set_aspect("equal")
         ax.set_xticks([])
         ax.set_yticks([])
-    fig.suptitle(title, fontsize=11)
+    # a file name is text, never mathtext: "$\\x$" in a suspect's name would stop the drawing
+    fig.suptitle(plain_text(title, 300).replace("$", r"\$"), fontsize=11)
     fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=90)

@@ -576,10 +576,14 @@ def _finish(out, versions, info, epsilon, store, keys_held):
         # copies it may be were not checked (keys not held, originals nowhere): never "no match"
         result["verdict"] = "inconclusive"
     top = result["accused"][0] if result["accused"] else None
-    evidence = None
+    evidence, notes = None, []
     if top is not None and top.get("cluster_scores") is not None:
         evidence = out / "evidence" / f"{info['sha256'][:32]}-{versions[0]}-{versions[1]}.png"
-        render_evidence(info["path"], top["original_path"], top, store, evidence)
+        try:
+            render_evidence(info["path"], top["original_path"], top, store, evidence)
+        except (ValueError, OSError) as exc:          # the accusation stands without its picture
+            evidence = None
+            notes.append(f"no evidence picture: {_text(exc)}")
     regs = [g["registration"] for c in info["checks"] for g in c["groups"]]
     # the accused's registration, else the best one (most overlap) of any candidate
     reg = top["registration"] if top else max(regs, key=lambda r: min(r.get("fitness", 0), r.get("coverage", 0)),
@@ -599,7 +603,8 @@ def _finish(out, versions, info, epsilon, store, keys_held):
             seconds_registration=sum(s["registration"] for s in seconds),
             seconds_detection=sum(s["estimate"] + s["scoring"] for s in seconds),
             evidence_path=None if evidence is None else str(evidence), keys_held=keys_held,
-            n_unchecked=len(unheld) or None, unchecked=_unchecked_text(info) or None)
+            n_unchecked=len(unheld) or None, unchecked=_unchecked_text(info) or None,
+            note="; ".join(notes + ([f"unchecked: {_unchecked_text(info)}"] if unheld else [])) or None)
     return result["verdict"]
 
 

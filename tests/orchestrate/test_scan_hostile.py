@@ -166,17 +166,28 @@ def test_a_suspects_folder_that_is_the_scan_output_or_a_glob_matching_nothing_is
 
 # -- item 1: an original that left the catalogue --------------------------------------------------------------
 
-@pytest.mark.parametrize("how", ["moved into a subfolder", "deleted"])
+@pytest.mark.parametrize("how", ["moved into a subfolder", "deleted", "deleted with its kept copy"])
 def test_a_copy_of_an_original_that_left_the_catalogue_is_still_attributed(world, capsys, how):
     name = "left-" + how.split()[0]
     write_array(world / name, "found", _leak(world, "bob", "asset-0", 5), "ply")
     original = world / "assets" / "asset-0.ply"
     target = world / "assets" / "old" / "asset-0.ply" if how.startswith("moved") else world / "away" / "asset-0.ply"
-    with _moved(original, target):
+    kept = world / "out" / "manifests" / "bases" / "originals"
+    with contextlib.ExitStack() as undo:
+        undo.enter_context(_moved(original, target))
+        if how.endswith("kept copy"):
+            name = "left-lost"
+            write_array(world / name, "found", _leak(world, "bob", "asset-0", 5), "ply")
+            undo.enter_context(_moved(kept, world / "kept.away"))
         write_catalogue([catalogue_record(a) for a in discover_assets(world / "assets")], world / f"{name}.parquet")
         keys = {r["asset_key"] for r in pq.read_table(world / f"{name}.parquet").to_pylist()}
         assert "asset-0" not in keys                                    # the catalogue rebuilt, as one does
         code, out, err, rows = _cli(capsys, _scan(world, name, catalogue=world / f"{name}.parquet"))
+    if how.endswith("kept copy"):                                       # no file holds it: said, never "no match"
+        assert code == 0 and rows["found.ply"]["verdict"] == "inconclusive", out + err
+        assert rows["found.ply"]["n_unchecked"] == 2 and "whose original no file holds" in err
+        assert "asset-0" in (world / f"{name}.out" / "report.md").read_text()
+        return
     assert code == 1, out + err
     assert rows["found.ply"]["verdict"] == "match" and rows["found.ply"]["recipient"] == "bob"
     assert rows["found.ply"]["candidate_asset"] == "asset-0"
@@ -193,6 +204,11 @@ def _forge(world, case):
     if case == "foreign part":
         pq.write_table(pa.table({"asset_key": ["asset-1"], "recipient": ["mallory"]}), path)
         return path
+    if case == "forged key id":       # under a fingerprint nobody holds: unverifiable, reported, escaped
+        forged.update(key_id="k\n| match | asset-1 | mallory (exact copy) | 9 | 0 | 9 | 2 | - |",
+                      key_fingerprint="0123456789abcdef", recipient="mallory", row_mac=None)
+        pq.write_table(pa.Table.from_pylist([forged], schema=LEDGER_SCHEMA), path)
+        return path
     if case == "reassigned recipient":
         forged["recipient"] = "mallory"                                  # alice's copy, said to be mallory's
     else:
@@ -201,7 +217,7 @@ def _forge(world, case):
     return path
 
 
-@pytest.mark.parametrize("case", ["reassigned recipient", "forged sha256", "foreign part"])
+@pytest.mark.parametrize("case", ["reassigned recipient", "forged sha256", "foreign part", "forged key id"])
 def test_a_forged_ledger_part_never_accuses(world, capsys, case):
     folder = world / case
     folder.mkdir()
@@ -219,8 +235,13 @@ def test_a_forged_ledger_part_never_accuses(world, capsys, case):
     assert code == 1, out + err
     assert rows["alice-copy.pcd"]["recipient"] == "alice"
     assert rows["innocent.ply"]["verdict"] != "match" and rows["innocent.ply"]["recipient"] is None
-    assert part.name in err and "untrusted" in err
     report = (world / f"{case}.out" / "report.md").read_text()
+    table = [re.split(r"(?<!\\)\|", line)[1:-1] for line in report.splitlines() if line.startswith("|")]
+    assert all(len(cells) == 9 for cells in table) and not any("mallory" in cells[3] for cells in table)
+    if case == "forged key id":
+        assert "unchecked: 1 copy under key k\\\\x0a\\| match" in report     # escaped, one line
+        return
+    assert part.name in err and "untrusted" in err
     assert "1 ledger row(s) set aside as untrusted" in report and "mallory" not in report
 
 
@@ -294,3 +315,17 @@ def test_a_hostile_entry_is_listed_with_its_refusal_and_never_opened(tmp_path, c
     if "/" in name:                                                      # a wildcard folder does follow it
         found = {p.relative_to(folder).as_posix(): why for p, why in list_suspects(f"{folder}/*/*.ply")[0]}
     assert why in found[name]
+
+
+# -- suspect names that are markup: Markdown, mathtext, newlines ----------------------------------------------
+
+def test_a_leak_whose_name_is_markup_is_attributed_with_its_evidence(world, capsys):
+    names = ["leak $\\undefinedcmd{x}$", "leak\nwith | pipes | `ticks`"]
+    for i, name in enumerate(names):
+        write_array(world / "markup", name, _leak(world, "bob", "asset-0", 20 + i), "ply")
+    code, out, err, rows = _cli(capsys, _scan(world, "markup"))
+    assert code == 1, out + err
+    for name in names:
+        row = rows[f"{name}.ply"]
+        assert row["recipient"] == "bob" and row["evidence_path"] and Path(row["evidence_path"]).is_file(), row
+    assert not any(line.startswith("with |") for line in err.splitlines())     # a name never starts a line
