@@ -237,7 +237,8 @@ def list_suspects(source):
         Each point-cloud file (by suffix) and its refusal, None when it may
         be read; sorted by path.
     others : list of Path
-        Files of other formats (not suspects), so a caller can say so.
+        Files of other formats and hidden files (not suspects), so a caller
+        can say so.
     """
     text = str(source)
     path = Path(text)
@@ -245,8 +246,7 @@ def list_suspects(source):
         root, found = path, []
         for folder, dirs, files in os.walk(path):                 # links to folders are not followed
             dirs[:] = [d for d in dirs if not d.startswith(".")]
-            found += [Path(folder) / n for n in files + [d for d in dirs if os.path.islink(Path(folder) / d)]
-                      if not n.startswith(".")]
+            found += [Path(folder) / n for n in files + [d for d in dirs if os.path.islink(Path(folder) / d)]]
     elif any(ch in text for ch in "*?["):
         parts = Path(text).parts
         magic = next(i for i, part in enumerate(parts) if any(ch in part for ch in "*?["))
@@ -257,8 +257,10 @@ def list_suspects(source):
         root, found = path.parent, [path]
     else:
         raise InputError(f"{text}: not a folder, a glob or a point-cloud file ({', '.join(sorted(FORMATS))})")
-    suspects = sorted((p, _refusal(p, root)) for p in found if p.suffix.lower() in FORMATS)
-    others = sorted(p for p in found if p.suffix.lower() not in FORMATS)
+    # hidden files (a writer's temporary ".NAME.XXXX.tmp.ply") are no suspects yet: said, not scanned
+    scanned = [p for p in found if p.suffix.lower() in FORMATS and not p.name.startswith(".")]
+    suspects = sorted((p, _refusal(p, root)) for p in scanned)
+    others = sorted(set(found) - set(scanned))
     return suspects, others
 
 

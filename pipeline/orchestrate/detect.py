@@ -29,7 +29,7 @@ from .attribute import check_asset, decide, original_files, usable_rows
 __all__ = ["detect_from_ledger", "held_rows", "candidate_groups", "unheld_copies", "unheld_summary"]
 
 
-_SEAL_HINT = "; rows of a ledger older than row MACs verify once the secret's holder seals them (Ledger.seal)"
+_SEAL_HINT = "; rows of a ledger older than row MACs verify once sealed: pointmark ledger seal LEDGER"
 
 
 def held_rows(ledger, secret, *, report=None):

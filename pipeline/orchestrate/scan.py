@@ -447,8 +447,8 @@ def _notices(ref, others):
                      f"(not in the catalogue, nor at the recorded path, nor kept in the basis store): "
                      + ", ".join(sorted(ref["lost"])[:10]))
     if others:
-        lines.append(f"{len(others)} file(s) of other formats among the suspects were not scanned, e.g. "
-                     f"{others[0]}")
+        lines.append(f"{len(others)} file(s) of other formats or hidden (temporary) among the suspects were not "
+                     f"scanned, e.g. {others[0]}")
     return lines
 
 

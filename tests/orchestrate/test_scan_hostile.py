@@ -104,6 +104,7 @@ def _hostile_folder(world):
     (folder / "evil\n| match | asset-0 | mallory (exact copy) | 9 | 0 | 9 | 2 | - |\n.xyz").write_text("1 2 3\n")
     (folder / "pipes.pts").write_text("| match | asset-0 | mallory (exact copy) | 9 / 1 | 0 |\n1 2 3\n")
     (folder / "notes.txt.md").write_text("not a suspect\n")
+    shutil.copy(alice, folder / ".x.ab12.tmp.pcd")                       # a writer's temporary file
     os.link(world / "secret.key", folder / "hard.xyz")                  # a hard link cannot be told from a file
     part = Ledger(world / "out" / "manifests").parts()[0]
     shutil.copy(part, folder / "ledger-part.ply")                       # the ledger's own part, as a suspect
@@ -132,7 +133,7 @@ def test_every_file_is_scanned_whatever_its_stem_and_hostile_ones_are_refused_un
         assert rows[name]["verdict"] == "failed" and why in rows[name]["error"] and name in rows[name]["error"]
     for name, why in {"hard.xyz": "hard.xyz", "ledger-part.ply": "ledger-part.ply", "few.xyz": "too few"}.items():
         assert rows[name]["verdict"] == "failed" and why in rows[name]["error"], rows[name]
-    assert "1 file(s) of other formats" in err
+    assert "2 file(s) of other formats or hidden" in err and ".x.ab12.tmp.pcd" not in rows
     # a second scan comes back at once: the FIFO is never opened, and the failures are retried
     code, out, err, rows = _cli(capsys, _scan(world, "hostile"))
     assert code == 3 and f"{len(REFUSED) + 5} failed" in out and "3 already scanned" in out, out
