@@ -29,10 +29,27 @@ def workdir(tmp_path):
     return tmp_path
 
 
-def _snakemake(workdir, *args):
+@pytest.fixture()
+def fresh_clone(tmp_path):
+    """The tracked tree (``git ls-files``) copied as a fresh clone has it: no catalog/demo, no out/."""
+    try:
+        listed = subprocess.run(["git", "ls-files", "-z"], cwd=ROOT, capture_output=True, check=True).stdout
+    except (OSError, subprocess.CalledProcessError):
+        pytest.skip("not a git checkout")
+    for name in filter(None, listed.decode().split("\0")):
+        src = ROOT / name
+        if src.is_file() and not name.startswith(("catalog/demo/", "out/")):
+            (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(src, tmp_path / name)
+    return tmp_path
+
+
+def _snakemake(workdir, *args, secret="snakemake-test-secret"):
     bin_dir = Path(sys.executable).parent
-    env = dict(os.environ, PATH=f"{bin_dir}{os.pathsep}{os.environ['PATH']}",
-               POINTMARK_SECRET="snakemake-test-secret", PYTHONPATH=str(ROOT))
+    env = dict(os.environ, PATH=f"{bin_dir}{os.pathsep}{os.environ['PATH']}", PYTHONPATH=str(ROOT))
+    env.pop("POINTMARK_SECRET", None)
+    if secret:
+        env["POINTMARK_SECRET"] = secret
     return subprocess.run([str(bin_dir / "snakemake"), *args], cwd=workdir, env=env,
                           capture_output=True, text=True, timeout=600)
 
@@ -47,6 +64,30 @@ def test_dry_run_plans_catalogue_and_shards(workdir):
     res = _snakemake(workdir, "-n")
     assert res.returncode == 0, res.stderr
     assert "catalogue" in res.stdout and "embed" in res.stdout
+
+
+def test_a_fresh_clone_dry_run_plans_the_demo_assets(fresh_clone):
+    assert not (fresh_clone / "catalog" / "demo").exists()
+    res = _snakemake(fresh_clone, "-n")
+    assert res.returncode == 0, res.stdout + res.stderr
+    for rule in ("demo_assets", "catalogue", "embed"):
+        assert rule in res.stdout
+    assert not (fresh_clone / "catalog" / "demo").exists() and not (fresh_clone / "out").exists()
+
+
+@pytest.mark.parametrize("cause", ["assets folder missing", "no secret"])
+def test_what_to_do_first_in_one_line_before_any_job(workdir, cause):
+    args, secret = ("--cores", "1"), "snakemake-test-secret"
+    if cause == "assets folder missing":
+        shutil.rmtree(workdir / "assets")
+        args, needle = ("-n",), "workflow.assets 'assets' is not a folder"
+    else:
+        secret, needle = None, "export POINTMARK_SECRET"
+    res = _snakemake(workdir, *args, secret=secret)
+    assert res.returncode == 1
+    assert res.stderr.strip().splitlines()[-1].startswith("configs/workflow.yaml: ")
+    assert needle in res.stderr.strip().splitlines()[-1]
+    assert "Traceback" not in res.stderr and not (workdir / "out").exists()
 
 
 def test_config_is_validated_against_the_schema(workdir):
