@@ -159,9 +159,11 @@ def test_no_file_content_and_no_forged_row_reaches_the_results_or_report(world, 
 def test_a_suspects_folder_that_is_the_scan_output_or_a_glob_matching_nothing_is_refused_first(world, capsys):
     (world / "self.out" / "results").mkdir(parents=True)
     for suspects in (world / "self.out", world / "self.out" / "results", str(world / "none-*.ply"),
-                     str(world / "out" / "manifests" / "copies" / "*")):          # the ledger's own parts
+                     str(world / "out" / "manifests" / "copies" / "*"),           # the ledger's own parts
+                     world / "secret.key"):                                       # not a point-cloud file
         code, _, err, _ = _cli(capsys, _scan(world, "self", suspects))
         assert code == 2 and len(err.strip().splitlines()) == 1 and "scan.suspects" in err, err
+        assert SECRET[:12] not in err
     assert not list((world / "self.out" / "results").iterdir())
 
 
