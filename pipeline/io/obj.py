@@ -18,7 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .text import TextFormatError, check_text, describe_value, parse_coords, rewrite_lines, split_lines
+from .text import (TextFormatError, coordinates, describe_value, gather, read_blocks, rewrite_lines, split_lines,
+                   whole_text)
 
 __all__ = ["ObjData", "ObjError", "read_obj", "write_obj", "obj_from_points"]
 
@@ -57,65 +58,130 @@ class ObjData:
 def read_obj(data):
     """Parse OBJ bytes.
 
+    Every line is checked block by block first (bounded memory); a positive
+    face index beyond the last vertex is named once the vertices are counted.
+
     Parameters
     ----------
-    data : bytes
+    data : bytes or binary file
 
     Returns
     -------
     ObjData
     """
     try:
-        check_text(data)
+        rows, points, triangles = read_blocks(data, _obj_block, _Vertices)
     except TextFormatError as exc:
         raise ObjError(str(exc)) from None
-    lines = split_lines(data)
-    rows, coords, polygons = [], [], []
-    for i, line in enumerate(lines):
-        tokens = line.split()
-        if not tokens:
-            continue
-        if tokens[0] == b"v":
-            if len(tokens) - 1 not in _VERTEX_VALUES:
-                raise ObjError(f"line {i + 1}: a vertex has {len(tokens) - 1} values "
-                               "(x y z, x y z w, x y z r g b or x y z w r g b expected)")
-            coords.append(_coords(tokens, i + 1))
-            rows.append(i)
-        elif tokens[0] == b"f":
-            polygons.append((i + 1, len(rows), tokens[1:]))
-    triangles = _triangulate(polygons, len(rows))
-    points = np.asarray(coords, dtype=np.float64).reshape(-1, 3)
-    return ObjData(lines, np.asarray(rows, dtype=np.int64), points, triangles)
+    return ObjData(split_lines(whole_text(data)), rows, points, triangles)
 
 
-def _coords(tokens, lineno):
+class _Vertices:
+    """What a pass over an OBJ carries from block to block."""
+
+    def __init__(self, totals=None):
+        self.defined = 0                                     # vertices before the block
+        self.n_vertices = None if totals is None else totals[0]
+        self.highest = 0                                     # largest positive face index seen
+
+    def finish(self, totals):
+        return self.highest > totals[0]
+
+
+def _obj_block(tokens, state):
+    """(rows (k,), points (k, 3), triangles (t, 3)) of a block; the first bad line named."""
+    keyword = (tokens.size == 1)
+    v = np.flatnonzero(keyword & (tokens.head == ord("v")))
+    f = np.flatnonzero(keyword & (tokens.head == ord("f")))
+    pending = _first_error([_bad_vertex_lines(tokens, v), _short_faces(tokens, f)])
+    if pending is not None:
+        v, f = v[v < pending.line - tokens.line], f[f < pending.line - tokens.line]
     try:
-        return parse_coords(tokens, (1, 2, 3), lineno)
+        points = coordinates(tokens, v, (1, 2, 3))
     except TextFormatError as exc:
-        raise ObjError(str(exc)) from None
+        pending = exc
+        f = f[f < exc.line - tokens.line]
+    triangles = _triangles(tokens, f, state.defined + np.searchsorted(v, f), state)
+    if pending is not None:
+        raise pending
+    state.defined += len(v)
+    return tokens.row + v.astype(np.int64), points, triangles
 
 
-def _triangulate(polygons, n_vertices):
-    triangles = []
-    for lineno, defined, refs in polygons:
-        if len(refs) < 3:
-            raise ObjError(f"line {lineno}: a face needs at least 3 vertices, it has {len(refs)}")
-        idx = [_vertex_index(ref, defined, n_vertices, lineno) for ref in refs]
-        triangles += [(idx[0], idx[k], idx[k + 1]) for k in range(1, len(idx) - 1)]
-    return np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+def _first_error(errors):
+    found = [e for e in errors if e is not None]
+    return min(found, key=lambda e: e.line) if found else None
 
 
-def _vertex_index(ref, defined, n_vertices, lineno):
-    head = ref.split(b"/", 1)[0]
+def _bad_vertex_lines(tokens, v):
+    bad = np.flatnonzero(~np.isin(tokens.count[v] - 1, _VERTEX_VALUES))
+    if not len(bad):
+        return None
+    lineno = tokens.line + int(v[bad[0]])
+    return TextFormatError(f"line {lineno}: a vertex has {tokens.count[v[bad[0]]] - 1} values "
+                           "(x y z, x y z w, x y z r g b or x y z w r g b expected)", lineno)
+
+
+def _short_faces(tokens, f):
+    bad = np.flatnonzero(tokens.count[f] < 4)
+    if not len(bad):
+        return None
+    lineno = tokens.line + int(f[bad[0]])
+    return TextFormatError(f"line {lineno}: a face needs at least 3 vertices, it has {tokens.count[f[bad[0]]] - 1}",
+                           lineno)
+
+
+def _triangles(tokens, f, defined, state):
+    """(t, 3) zero-based triangles of the face lines ``f``, fan-triangulated; every index checked.
+
+    ``defined`` (len(f),) counts the vertices defined before each face line.
+    Positive indices are checked against ``state.n_vertices`` when it is
+    known, else the largest is kept for the end of the pass.
+    """
+    m = tokens.count[f] - 1                                  # vertex references per face
+    offsets = np.cumsum(m) - m
+    refs = np.arange(int(m.sum())) + np.repeat(tokens.first[f] + 1 - offsets, m)
+    words = gather(tokens.words, refs)
+    k = _indices(words)
+    face = np.repeat(np.arange(len(f)), m)
+    before = np.repeat(defined, m)
+    index = np.where(k > 0, k - 1, before + k)
+    limit = np.inf if state.n_vertices is None else state.n_vertices
+    bad = (k == 0) | (index < 0) | (index >= limit) if len(k) else np.zeros(0, dtype=bool)
+    if bad.any():
+        at = int(np.argmax(bad))
+        lineno = tokens.line + int(f[face[at]])
+        if k[at] == _NOT_AN_INDEX:
+            raise TextFormatError(f"line {lineno}: a face vertex ({describe_value(words[at])}) is not an index",
+                                  lineno)
+        value = int(words[at].split(b"/", 1)[0])
+        raise TextFormatError(f"line {lineno}: face vertex index {value} is out of range "
+                              f"({int(before[at])} vertices defined before this line)", lineno)
+    state.highest = max(state.highest, int(k.max()) if len(k) else 0)
+    n_tri = m - 2
+    fan = np.repeat(offsets, n_tri)
+    step = np.arange(int(n_tri.sum())) - np.repeat(np.cumsum(n_tri) - n_tri, n_tri)
+    return np.stack([index[fan], index[fan + step + 1], index[fan + step + 2]], axis=1).reshape(-1, 3)
+
+
+_NOT_AN_INDEX = np.iinfo(np.int64).min          # marks a face reference that is not an integer
+
+
+def _indices(words):
+    """(r,) int64 vertex numbers of face references ``v``, ``v/vt``, ``v//vn``, ``v/vt/vn``."""
+    heads = [w.split(b"/", 1)[0] for w in words] if b"/" in b" ".join(words) else words
+    try:
+        return np.fromiter(map(int, heads), dtype=np.int64, count=len(heads))
+    except (ValueError, OverflowError):
+        return np.fromiter(map(_index, heads), dtype=np.int64, count=len(heads))
+
+
+def _index(head):
     try:
         k = int(head)
     except ValueError:
-        raise ObjError(f"line {lineno}: a face vertex ({describe_value(ref)}) is not an index") from None
-    index = k - 1 if k > 0 else defined + k
-    if k == 0 or not 0 <= index < n_vertices:
-        raise ObjError(f"line {lineno}: face vertex index {k} is out of range "
-                       f"({defined} vertices defined before this line)")
-    return index
+        return _NOT_AN_INDEX
+    return max(min(k, 1 << 62), -(1 << 62))      # out of range either way; the message quotes the token
 
 
 def write_obj(obj, points):

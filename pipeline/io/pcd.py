@@ -22,7 +22,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .text import MAX_LINE, TextFormatError, check_text, describe_value, describe_word, parse_coords, rewrite_lines, split_lines
+import os
+
+from .text import (MAX_LINE, TextFormatError, coordinates, describe_value, describe_word, read_blocks, rewrite_lines,
+                   split_lines, whole_text)
 
 __all__ = ["PcdData", "PcdError", "read_pcd", "write_pcd", "pcd_from_points",
            "lzf_compress", "lzf_decompress", "check_head", "MAX_HEADER"]
@@ -76,26 +79,31 @@ def read_pcd(data):
 
     Parameters
     ----------
-    data : bytes
+    data : bytes or binary file
+        An ascii body is checked line by line, block by block, before it is kept.
 
     Returns
     -------
     PcdData
     """
-    header, fields, n, encoding = _layout(data, len(data))
-    body = memoryview(data)[len(header):]
+    head, size = _head(data)
+    header, fields, n, encoding = _layout(head, size)
     if encoding == "ascii":
-        body = bytes(body)
-        try:
-            check_text(body)
-        except TextFormatError as exc:
-            raise PcdError(f"the ascii body: {exc}") from None
-        return _read_ascii(header, fields, n, body)
+        return _read_ascii(data, header, fields, n)
+    body = memoryview(whole_text(data))[len(header):]
     dtype = _dtype(fields)
     raw = _binary_body(body, n, dtype) if encoding == "binary" else _compressed_body(body, n, dtype)
     records = raw if encoding == "binary" else _from_columns(raw, n, dtype)
     points = np.column_stack([records[a].astype(np.float64) for a in "xyz"])
     return PcdData(header, fields, encoding, points, records=records)
+
+
+def _head(data):
+    """(the first bytes holding the header, the length of the whole file)."""
+    if not hasattr(data, "read"):
+        return data, len(data)
+    data.seek(0)
+    return data.read(MAX_HEADER + 8), os.fstat(data.fileno()).st_size
 
 
 def check_head(head, size):
@@ -257,37 +265,53 @@ def _to_columns(records):
     return b"".join(np.ascontiguousarray(records[name]).tobytes() for name in records.dtype.names)
 
 
-def _read_ascii(header, fields, n, body):
-    lines = split_lines(body)
-    width = sum(c for *_rest, c in fields)
-    offsets = np.cumsum([0] + [c for *_rest, c in fields])
-    cols = tuple(int(offsets[[f[0] for f in fields].index(a)]) for a in "xyz")
-    types = {f[0]: _TYPES[(f[1], f[2])] for f in fields if f[0] in "xyz"}
-    first = header.count(b"\n") + 1
-    rows, coords = [], []
-    for i, line in enumerate(lines):
-        tokens = line.split()
-        if not tokens:
-            continue
-        if len(tokens) != width:
-            raise PcdError(f"line {first + i}: {len(tokens)} values, the fields need {width}")
-        try:
-            coords.append(parse_coords(tokens, cols, first + i))
-        except TextFormatError as exc:
-            raise PcdError(str(exc)) from None
-        rows.append(i)
-    if len(rows) != n:
-        raise PcdError(f"POINTS {n} disagrees with the {len(rows)} data lines")
-    points = np.asarray(coords, dtype=np.float64).reshape(-1, 3)
-    kinds = tuple(_kind(types[a]) for a in "xyz")
+def _read_ascii(data, header, fields, n):
+    """An ascii body: every line checked block by block, then kept for faithful writing."""
+    layout = _AsciiBody(fields, n)
+    try:
+        rows, points = read_blocks(data, _ascii_block, lambda totals: _AsciiBody(fields, n),
+                                   start=len(header), line=header.count(b"\n") + 1)
+    except TextFormatError as exc:          # not text (the lines' own errors are PcdErrors)
+        raise PcdError(f"the ascii body: {exc}") from None
+    lines = split_lines(whole_text(data, len(header)))
+    return PcdData(header, fields, "ascii", points, lines=lines, rows=rows, cols=layout.cols, kinds=layout.kinds)
+
+
+class _AsciiBody:
+    """The layout an ascii body's lines must follow, and the data lines counted so far."""
+
+    def __init__(self, fields, n):
+        self.n, self.seen = n, 0
+        self.width = sum(c for *_rest, c in fields)
+        offsets = np.cumsum([0] + [c for *_rest, c in fields])
+        names = [f[0] for f in fields]
+        self.cols = tuple(int(offsets[names.index(a)]) for a in "xyz")
+        self.kinds = tuple(_kind(_TYPES[(fields[names.index(a)][1], fields[names.index(a)][2])]) for a in "xyz")
+
+    def finish(self, totals):
+        if totals[0] != self.n:
+            raise PcdError(f"POINTS {self.n} disagrees with the {totals[0]} data lines")
+        return False
+
+
+def _ascii_block(tokens, body):
+    """(rows (k,), points (k, 3)) of a block of ascii data lines; float32 fields rounded as stored."""
+    lines = np.flatnonzero(tokens.count > 0)
+    wrong = np.flatnonzero(tokens.count[lines] != body.width)
+    try:
+        points = coordinates(tokens, lines[:wrong[0]] if len(wrong) else lines, body.cols)
+    except TextFormatError as exc:
+        raise PcdError(str(exc)) from None
+    if len(wrong):
+        at = int(lines[wrong[0]])
+        raise PcdError(f"line {tokens.line + at}: {tokens.count[at]} values, the fields need {body.width}")
     for i, a in enumerate("xyz"):
-        if kinds[i] == "f4":
+        if body.kinds[i] == "f4":
             if len(points) and np.abs(points[:, i]).max() > np.finfo(np.float32).max:
                 raise PcdError(f"field {a} is declared float32 but holds {np.abs(points[:, i]).max():.3g}, "
                                f"beyond float32's range")
             points[:, i] = points[:, i].astype(np.float32)
-    return PcdData(header, fields, "ascii", points, lines=lines, rows=np.asarray(rows, dtype=np.int64),
-                   cols=cols, kinds=kinds)
+    return tokens.row + lines.astype(np.int64), points
 
 
 def _kind(dtype):

@@ -10,12 +10,13 @@ mesh attacks.
 from __future__ import annotations
 
 import io
+import os
 import re
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from .text import describe_word
+from .text import TextFormatError, describe_value, describe_word, gather, read_blocks, whole_text
 
 __all__ = ["PlyData", "read_ply", "write_ply", "PlyError", "check_head", "MAX_HEADER"]
 
@@ -74,29 +75,44 @@ def read_ply(data):
 
     The body must match the header exactly: a vertex count, element count or
     list length that disagrees with the data is an error, never a guess
-    (fewer or more records than declared, bytes or lines left over).
+    (fewer or more records than declared, bytes or lines left over).  An
+    ASCII body is checked block by block before it is kept, so a refused
+    one costs bounded memory.
 
     Parameters
     ----------
-    data : bytes
+    data : bytes or binary file
 
     Returns
     -------
     PlyData
     """
-    body_start, header, fmt, elements = _header(data, len(data))
+    head, size = _head(data)
+    body_start, header, fmt, elements = _header(head, size)
     count, props = elements[0][1], elements[0][2]
-    body = memoryview(data)[body_start:]
     if fmt == "ascii":
-        vertices, tail = _read_ascii_vertices(body, count, props)
-        _check_ascii_tail(tail, count, elements[1:])
+        values = _read_ascii_body(data, body_start, count, props, elements[1:], header)
+    body = memoryview(whole_text(data))[body_start:]
+    if fmt == "ascii":
+        vertices = np.empty(count, dtype=np.dtype([(p, t) for p, _, t in props]))
+        for i, (p, _, _) in enumerate(props):
+            vertices[p] = values[:, i]
+        tail = bytes(body[_line_end(body, count):])
     else:
         dtype = np.dtype([(p, _FORMATS[fmt] + t) for p, _, t in props])
         need = dtype.itemsize * count
         vertices = np.frombuffer(body, dtype=dtype, count=count).copy()
+        _check_binary_tail(body[need:], count, dtype.itemsize, elements[1:], _FORMATS[fmt])
         tail = bytes(body[need:])
-        _check_binary_tail(tail, count, dtype.itemsize, elements[1:], _FORMATS[fmt])
     return PlyData(vertices, header, fmt, tail, elements)
+
+
+def _head(data):
+    """(the first bytes holding the header, the length of the whole file)."""
+    if not hasattr(data, "read"):
+        return data, len(data)
+    data.seek(0)
+    return data.read(MAX_HEADER + 16), os.fstat(data.fileno()).st_size
 
 
 def check_head(head, size):
@@ -249,30 +265,181 @@ def _parse_property(words, where):
     return (words[2], "scalar", _TYPES[words[1]])
 
 
-def _read_ascii_vertices(body, count, props):
-    """Vertex records from the first ``count`` lines of an ASCII body, parsed in C (no per-token lists).
+def _read_ascii_body(data, body_start, count, props, elements, header):
+    """(count, p) float64 vertex values of an ASCII body; every line checked block by block first.
 
-    Returns
-    -------
-    vertices : (count,) structured array
-    tail : bytes
-        The body after the vertex lines.
+    The lines after the vertices must hold exactly the declared records; list
+    lengths and vertex indices are checked.
     """
-    end = _line_end(body, count)
-    if end is None:
-        raise PlyError(f"truncated: the header declares {count} vertices, fewer lines follow")
-    dtype = np.dtype([(p, t) for p, _, t in props])
-    table = _ascii_table(body[:end], np.float64, "vertex") if count else np.zeros((0, len(props)))
-    if table.shape[0] != count:
-        raise PlyError(f"the {count} vertex lines include {count - table.shape[0]} blank lines")
-    if table.shape[1] != len(props):
-        raise PlyError(f"vertex line 1 has {table.shape[1]} values, the header declares {len(props)} properties")
-    vertices = np.empty(count, dtype=dtype)
-    for i, (p, _, t) in enumerate(props):
-        column = table[:, i]
-        _check_ascii_range(p, column, np.dtype(t))
-        vertices[p] = column
-    return vertices, bytes(body[end:])
+    try:
+        (values,) = read_blocks(data, _ascii_block, lambda totals: _AsciiBody(count, props, elements),
+                                start=body_start, line=len(header) + 1)
+    except TextFormatError as exc:
+        raise PlyError(f"the ascii body: {exc}") from None
+    return values
+
+
+class _AsciiBody:
+    """An ASCII body's layout, and how far a pass over it has come."""
+
+    def __init__(self, count, props, elements):
+        self.count, self.props, self.elements = count, props, elements
+        self.element, self.done, self.extra = 0, 0, 0      # element in checking, its records checked, lines beyond
+
+    def finish(self, totals):
+        if totals[0] < self.count:
+            raise PlyError(f"truncated: the header declares {self.count} vertices, {totals[0]} lines follow")
+        declared = sum(c for _, c, _ in self.elements)
+        held = sum(c for _, c, _ in self.elements[:self.element]) + self.done + self.extra
+        if held == declared and not self.extra:
+            return False
+        if not self.elements:
+            raise PlyError(f"the header declares {self.count} vertices, the body holds {self.count + held} "
+                           f"lines of data")
+        if len(self.elements) == 1:
+            name, n, _ = self.elements[0]
+            raise PlyError(f"after the {self.count} vertices the header declares {n} {name} records, "
+                           f"the body holds {held} lines")
+        listing = ", ".join(f"{c} {n}" for n, c, _ in self.elements)
+        raise PlyError(f"after the {self.count} vertices the header declares {declared} records ({listing}), "
+                       f"the body holds {held if held else 'none'}{' lines' if held else ''}")
+
+
+def _ascii_block(tokens, body):
+    """((k, p) float64 values of the block's vertex lines,); the records after them checked."""
+    n_lines = len(tokens.count)
+    k = int(min(max(body.count - tokens.row, 0), n_lines))
+    values = _vertex_values(tokens, k, body)
+    lines = k + np.flatnonzero(tokens.count[k:])
+    at = 0
+    while at < len(lines):
+        if body.element == len(body.elements):
+            body.extra += len(lines) - at
+            break
+        name, count, props = body.elements[body.element]
+        take = min(count - body.done, len(lines) - at)
+        _check_records(tokens, lines[at:at + take], name, props, body.done, body.count)
+        body.done, at = body.done + take, at + take
+        if body.done == count:
+            body.element, body.done = body.element + 1, 0
+    return (values,)
+
+
+def _vertex_values(tokens, k, body):
+    """(k, p) float64: the block's first ``k`` lines, each one vertex of ``p`` values in range."""
+    p = len(body.props)
+    wrong = np.flatnonzero(tokens.count[:k] != p)
+    pending = None
+    if len(wrong):
+        j = int(wrong[0])
+        what = "is blank" if not tokens.count[j] else f"has {tokens.count[j]} values"
+        pending = PlyError(f"line {tokens.line + j} (vertex {tokens.row + j}) {what}, the header declares "
+                           f"{p} properties")
+        k = j
+    words = tokens.words[:k * p]
+    try:
+        values = np.fromiter(map(float, words), dtype=np.float64, count=k * p).reshape(k, p)
+    except ValueError:
+        i = next(i for i, w in enumerate(words) if not _is_number(w))
+        raise PlyError(f"line {tokens.line + i // p} (vertex {tokens.row + i // p}): value {i % p + 1} "
+                       f"({describe_value(words[i])}) is not a number") from None
+    if pending is not None:
+        raise pending
+    for i, (name, _, t) in enumerate(body.props):
+        _check_ascii_range(name, values[:, i], np.dtype(t), tokens.row)
+    return values
+
+
+def _is_number(word):
+    try:
+        float(word)
+    except ValueError:
+        return False
+    return True
+
+
+def _check_records(tokens, lines, name, props, k0, n_vertices):
+    """Records ``k0``, ``k0 + 1``, ... of an element, one per line: list lengths, value counts, vertex indices.
+
+    Vectorised over the lines; the first bad record (and within it the first
+    bad property) is named.
+    """
+    first = tokens.first[lines]
+    end = first + tokens.count[lines]
+    cursor, found = first.copy(), []                  # found: (record, property order, message)
+    for order, (prop, kind, _) in enumerate(props):
+        if kind != "list":
+            cursor = cursor + 1
+            continue
+        inside = cursor < end
+        lengths = _lengths(gather(tokens.words, np.minimum(cursor, end - 1)))
+        bad = ~inside | (lengths < 0)
+        if bad.any():
+            r = int(np.argmax(bad))
+            found.append((r, order, f"{name} {k0 + r}: bad list length (value {int(cursor[r] - first[r]) + 1})"))
+        lengths = np.where(bad, 0, lengths)
+        if _is_index(name, prop):
+            found += _index_errors(tokens, cursor + 1, np.minimum(cursor + 1 + lengths, end), name, k0,
+                                   n_vertices, order)
+        cursor = cursor + 1 + lengths
+    wrong = np.flatnonzero(cursor != end)
+    if len(wrong):
+        r = int(wrong[0])
+        found.append((r, len(props), f"{name} {k0 + r}: {int(end[r] - first[r])} values, the header declares "
+                                     f"{int(cursor[r] - first[r])}"))
+    if found:
+        r, _, message = min(found)
+        raise PlyError(f"line {tokens.line + int(lines[r])}, {message}")
+
+
+_LONGEST = 1 << 40          # a list length beyond any line (the count check then refuses it)
+
+
+def _lengths(words):
+    """(r,) int64 list lengths; -1 where a word is not a plain decimal number."""
+    if b"".join(words).isdigit():
+        try:
+            return np.minimum(np.fromiter(map(int, words), dtype=np.int64, count=len(words)), _LONGEST)
+        except OverflowError:
+            pass
+    return np.fromiter((min(int(w), _LONGEST) if w.isdigit() else -1 for w in words), dtype=np.int64,
+                       count=len(words))
+
+
+def _index_errors(tokens, start, stop, name, k0, n_vertices, order):
+    """[(record, order, message)] for the first record whose words ``start:stop`` hold a bad vertex index."""
+    n = np.maximum(stop - start, 0)
+    idx = np.arange(int(n.sum())) + np.repeat(start - (np.cumsum(n) - n), n)
+    words = gather(tokens.words, idx)
+    values, ok = _integers(words)
+    bad = ~ok | (values < 0) | (values >= n_vertices)
+    if not bad.any():
+        return []
+    at = int(np.argmax(bad))
+    r = int(np.repeat(np.arange(len(n)), n)[at])
+    if not ok[at]:
+        return [(r, order, f"{name} {k0 + r}: a vertex index is not an integer")]
+    return [(r, order, f"{name} {k0 + r}: vertex index {int(words[at])} is outside the {n_vertices} vertices")]
+
+
+def _integers(words):
+    """((r,) int64 values, (r,) bool: whether each word is an integer Python reads)."""
+    try:
+        return np.fromiter(map(int, words), dtype=np.int64, count=len(words)), np.ones(len(words), dtype=bool)
+    except (ValueError, OverflowError):
+        pass
+    values = np.fromiter(map(_integer, words), dtype=np.int64, count=len(words))
+    return values, values != _NOT_INTEGER
+
+
+_NOT_INTEGER = np.iinfo(np.int64).min
+
+
+def _integer(word):
+    try:
+        return max(min(int(word), 1 << 62), -(1 << 62))      # out of range either way
+    except ValueError:
+        return _NOT_INTEGER
 
 
 def _line_end(body, count, block=1 << 24):
@@ -291,34 +458,8 @@ def _line_end(body, count, block=1 << 24):
     return None
 
 
-_COLUMNS = re.compile(r"columns changed from (\d+) to (\d+) at row (\d+)")
-_CONVERT = re.compile(r"at row (\d+), column (\d+)")
-
-
-def _ascii_table(block, dtype, what):
-    """(rows, values) table of whitespace-separated numbers; blank lines skipped.
-
-    Raises
-    ------
-    PlyError
-        Naming the line (1-based within ``block``) and never quoting its text.
-    """
-    try:
-        return np.loadtxt(io.BytesIO(bytes(block)), dtype=dtype, ndmin=2, comments=None)
-    except ValueError as exc:
-        text = str(exc)
-        m = _COLUMNS.search(text)
-        if m:
-            raise PlyError(f"{what} line {m.group(3)} has {m.group(2)} values, the first has {m.group(1)}") from None
-        m = _CONVERT.search(text)
-        if m:
-            kind = "an integer" if np.dtype(dtype).kind == "i" else "a number"
-            raise PlyError(f"{what} line {int(m.group(1)) + 1}: value {m.group(2)} is not {kind}") from None
-        raise PlyError(f"bad {what} lines") from None
-
-
-def _check_ascii_range(name, column, dtype):
-    """Values of an ASCII column must be representable in the declared type."""
+def _check_ascii_range(name, column, dtype, first=0):
+    """Values of an ASCII column (vertices ``first``, ``first + 1``, ...) must fit the declared type."""
     if dtype.kind in "iu":
         info = np.iinfo(dtype)
         bad = ~np.isfinite(column) | (column != np.round(column)) | (column < info.min) | (column > info.max)
@@ -329,38 +470,7 @@ def _check_ascii_range(name, column, dtype):
         what = f"within the range of {dtype.name}"
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
-        raise PlyError(f"vertex {i}: property {name!r} is {column[i]!r}, not {what}")
-
-
-def _check_ascii_tail(tail, n_vertices, elements):
-    """The lines after the vertices must hold exactly the declared records; face indices name vertices."""
-    declared = sum(count for _, count, _ in elements)
-    if not tail.strip():
-        if declared:
-            raise PlyError(f"after the {n_vertices} vertices the header declares {declared} records "
-                           f"({_listing(elements)}), the body holds none")
-        return
-    if len(elements) == 1 and _fixed_list_table(tail, n_vertices, elements[0]):
-        return
-    lines = _data_lines(tail)
-    for name, count, props in elements:
-        for k in range(count):
-            line = next(lines, None)
-            if line is None:
-                raise PlyError(f"after the {n_vertices} vertices the header declares {declared} records "
-                               f"({_listing(elements)}), the body holds fewer lines")
-            _check_ascii_record(line.split(), name, k, props, n_vertices)
-    extra = sum(1 for _ in lines)
-    if extra:
-        if not elements:
-            raise PlyError(f"the header declares {n_vertices} vertices, the body holds "
-                           f"{n_vertices + extra} lines of data")
-        raise PlyError(f"after the {n_vertices} vertices the header declares {declared} records "
-                       f"({_listing(elements)}), the body holds {declared + extra} lines")
-
-
-def _listing(elements):
-    return ", ".join(f"{c} {n}" for n, c, _ in elements)
+        raise PlyError(f"vertex {first + i}: property {name!r} is {column[i]!r}, not {what}")
 
 
 def _data_lines(data):
@@ -374,33 +484,9 @@ def _data_lines(data):
         start = end + 1
 
 
-def _check_ascii_record(words, name, k, props, n_vertices):
-    need = 0
-    for prop, kind, _ in props:
-        if kind != "list":
-            need += 1
-            continue
-        length = int(words[need]) if need < len(words) and words[need].isdigit() else -1
-        if length < 0:
-            raise PlyError(f"{name} {k}: bad list length (value {need + 1})")
-        if _is_index(name, prop):
-            _check_indices(words[need + 1: need + 1 + length], name, k, n_vertices)
-        need += 1 + length
-    if need != len(words):
-        raise PlyError(f"{name} {k}: {len(words)} values, the header declares {need}")
-
-
 def _is_index(element, prop):
     """Whether a list property holds vertex indices (checked against the vertex count)."""
     return element == "face" or prop in _INDEX_NAMES
-
-
-def _check_indices(words, name, k, n_vertices):
-    try:
-        idx = np.asarray([int(w) for w in words], dtype=np.int64)
-    except (ValueError, OverflowError):
-        raise PlyError(f"{name} {k}: a vertex index is not an integer") from None
-    _check_index_range(idx, name, k, n_vertices)
 
 
 def _check_index_range(idx, name, k, n_vertices):
@@ -411,27 +497,6 @@ def _check_index_range(idx, name, k, n_vertices):
         record = k if k is not None else int(at[0])
         value = int(idx[tuple(at)])
         raise PlyError(f"{name} {record}: vertex index {value} is outside the {n_vertices} vertices")
-
-
-def _fixed_list_table(tail, n_vertices, element):
-    """Fast path for one element of equal-length index lists (triangle meshes); False if it does not apply."""
-    name, count, props = element
-    if len(props) != 1 or props[0][1] != "list" or np.dtype(props[0][2][1]).kind not in "iu":
-        return False
-    try:
-        table = _ascii_table(tail, np.int64, name)
-    except PlyError as exc:
-        if "values, the first has" in str(exc):
-            return False       # lists of several lengths: the line-by-line path
-        raise
-    if table.shape[1] < 1 or (table[:, 0] != table.shape[1] - 1).any():
-        return False
-    if table.shape[0] != count:
-        raise PlyError(f"after the {n_vertices} vertices the header declares {count} {name} records, "
-                       f"the body holds {table.shape[0]} lines")
-    if _is_index(name, props[0][0]):
-        _check_index_range(table[:, 1:], name, None, n_vertices)
-    return True
 
 
 def _check_binary_tail(tail, n_vertices, vertex_size, elements, endian):
@@ -498,26 +563,68 @@ def _skip_binary_element(tail, at, name, count, props, endian, n_vertices):
                 idx = block[:, off: off + nbytes].copy().view(dt)
                 _check_index_range(idx, name, None, n_vertices)
             return at + size * count
-    # General path: one record at a time (bounded: each record takes at least one byte).
+    return _walk_records(tail, at, name, count, props, endian, n_vertices)
+
+
+_STRUCT = {"i1": "b", "u1": "B", "i2": "h", "u2": "H", "i4": "i", "u4": "I"}
+_SPAN_ITEMS = 1 << 19        # vertex indices gathered before they are checked at once
+
+
+def _walk_records(tail, at, name, count, props, endian, n_vertices):
+    """Offset just after ``count`` records of lists of several lengths, read one record at a time.
+
+    List lengths come from ``struct`` (no array per record); the vertex
+    indices are checked in batches, each before a later error is raised,
+    so the first bad record is the one named.
+    """
+    import struct
+
+    plan = [(np.dtype(t).itemsize, None, 0, None) if kind == "scalar" else
+            (np.dtype(t[0]).itemsize, struct.Struct(endian + _STRUCT[t[0]]), np.dtype(t[1]).itemsize,
+             np.dtype(endian + t[1]) if _is_index(name, prop) else None) for prop, kind, t in props]
+    spans, items, size = {}, 0, len(tail)
     for k in range(count):
-        for prop, kind, t in props:
-            if kind == "scalar":
-                at += np.dtype(t).itemsize
+        for width, length_of, item, index in plan:
+            if length_of is None:
+                at += width
                 continue
-            dt = np.dtype(endian + t[0])
-            if at + dt.itemsize > len(tail):
+            if at + width > size:
+                _check_spans(tail, spans, name, n_vertices)
                 raise PlyError(f"truncated: {name} {k} of {count} is cut off")
-            length = int(np.frombuffer(tail, dtype=dt, count=1, offset=at)[0])
+            length = length_of.unpack_from(tail, at)[0]
             if length < 0:
+                _check_spans(tail, spans, name, n_vertices)
                 raise PlyError(f"{name} {k}: negative list length {length}")
-            at += dt.itemsize
-            if _is_index(name, prop) and at + length * np.dtype(t[1]).itemsize <= len(tail):
-                idx = np.frombuffer(tail, dtype=endian + t[1], count=length, offset=at)
-                _check_index_range(idx, name, k, n_vertices)
-            at += length * np.dtype(t[1]).itemsize
-        if at > len(tail):
+            at += width
+            if index is not None and length and at + length * item <= size:
+                spans.setdefault(index, []).append((k, at, length))
+                items += length
+            at += length * item
+        if at > size:
+            _check_spans(tail, spans, name, n_vertices)
             raise PlyError(f"truncated: {name} {k} of {count} is cut off")
+        if items > _SPAN_ITEMS:
+            _check_spans(tail, spans, name, n_vertices)
+            spans, items = {}, 0
+    _check_spans(tail, spans, name, n_vertices)
     return at
+
+
+def _check_spans(tail, spans, name, n_vertices):
+    """Check vertex indices of list spans ``{dtype: [(record, offset, length)]}``; the first bad record named."""
+    found = []
+    for dt, group in spans.items():
+        record, offset, length = (np.asarray(c, dtype=np.int64) for c in zip(*group))
+        n = length * dt.itemsize
+        byte = np.arange(int(n.sum())) + np.repeat(offset - (np.cumsum(n) - n), n)
+        idx = np.frombuffer(tail, dtype=np.uint8)[byte].view(dt).astype(np.int64)
+        bad = (idx < 0) | (idx >= n_vertices)
+        if bad.any():
+            at = int(np.argmax(bad))
+            found.append((int(np.repeat(record, length)[at]), int(idx[at])))
+    if found:
+        k, value = min(found)
+        raise PlyError(f"{name} {k}: vertex index {value} is outside the {n_vertices} vertices")
 
 
 def _write_ascii_vertices(vertices):

@@ -111,9 +111,7 @@ def read_points(path):
             if fmt in ("las", "laz"):
                 native, points = _read_las(path)
             else:
-                f.seek(0)
-                data = f.read()
-                native = read_ply(data) if fmt == "ply" else _READERS[fmt](data)
+                native = read_ply(f) if fmt == "ply" else _READERS[fmt](f)     # text: checked block by block
                 points = native.points
         except OSError as exc:
             raise InputError(f"{path}: cannot read: {_reason(exc)}") from None

@@ -16,21 +16,28 @@ Rules (both formats):
   lines another count line may start a further block (Leica's multi-scan
   files).  A count that disagrees with the lines that follow is an error.
 
-The helpers :func:`parse_coords` and :func:`rewrite_lines` are shared with
-the PCD (ascii) and OBJ modules.
+Every line is checked in a first pass over blocks of whole lines
+(:func:`read_blocks`), which keeps nothing but counts for a large file, so a
+refused file costs bounded memory whatever its size; a valid one is then
+parsed by the same block function into arrays of the counted size.  The
+block helpers (:func:`text_blocks`, :func:`tokenise`, :func:`read_blocks`,
+:func:`coordinates`) and :func:`rewrite_lines` are shared with the PCD
+(ascii) and OBJ modules.
 """
 
 from __future__ import annotations
 
 import re
 from dataclasses import dataclass
+from operator import itemgetter
 
 import numpy as np
 
 __all__ = ["TextFormatError", "TextTable", "read_xyz", "read_pts", "write_text",
            "xyz_from_points", "pts_from_points", "parse_coords", "rewrite_lines",
            "format_coordinate", "split_lines", "excerpt", "describe_value", "describe_word", "check_text",
-           "packed_kind", "MAX_LINE"]
+           "packed_kind", "MAX_LINE", "Tokens", "tokenise", "text_blocks", "read_blocks", "whole_text",
+           "coordinates", "gather", "line_words", "BLOCK"]
 
 _SEPARATORS = re.compile(rb"(\s+)")
 MAX_LINE = 1 << 20          # bytes; a longer line is not a point line (a binary file, a one-line dump)
@@ -40,12 +47,23 @@ _WORD = re.compile(r"[A-Za-z0-9_.:\-]+")
 _NUMERIC = re.compile(r"[-+0-9.eE_ ]+|[-+]?(nan|inf|infinity)", re.IGNORECASE)
 _PACKED = {b"\x1f\x8b": "gzip", b"PK\x03\x04": "zip", b"\x28\xb5\x2f\xfd": "zstd", b"\xfd7zXZ\x00": "xz",
            b"BZh": "bzip2", b"7z\xbc\xaf\x27\x1c": "7-zip"}
+BLOCK = 1 << 22             # bytes of whole lines tokenised at a time (their tokens cost tens of MB at most)
+KEEP = 1 << 25              # bytes of parsed arrays the checking pass keeps; beyond, the file is parsed again
+_IS_SPACE = np.zeros(256, dtype=bool)
+_IS_SPACE[list(b" \t\n\r\x0b\x0c")] = True         # what bytes.split() splits at
 _IS_CONTROL = np.zeros(256, dtype=bool)
 _IS_CONTROL[sorted(set(range(32)) - set(b"\t\n\r\f\v")) + [0x7F]] = True
 
 
 class TextFormatError(ValueError):
-    """A text point file that cannot be read (the message says why and where)."""
+    """A text point file that cannot be read (the message says why and where).
+
+    ``line`` is the 1-based line it names, when it names one.
+    """
+
+    def __init__(self, message, line=None):
+        super().__init__(message)
+        self.line = line
 
 
 @dataclass
@@ -161,6 +179,11 @@ def check_text(data):
         (binary data, UTF-16), old-Mac CR-only line endings, or a line
         longer than :data:`MAX_LINE`.
     """
+    _check_start(data)
+    _check_lines(data)
+
+
+def _check_start(data):
     kind = packed_kind(data)
     if kind:
         raise TextFormatError(f"{kind}-compressed data, not text; decompress the file first")
@@ -168,12 +191,16 @@ def check_text(data):
         raise TextFormatError("UTF-16 text is not supported; save the file as ASCII or UTF-8")
     if data[:3] == b"\xef\xbb\xbf":
         raise TextFormatError("the file starts with a UTF-8 byte-order mark; save it without one")
-    _scan(data)
+
+
+def _check_lines(data, offset=0, line=1):
+    """Control bytes, long lines and CR-only endings in ``data``, which starts at byte ``offset``, line ``line``."""
+    _scan(data, offset=offset, line=line)
     if data.count(b"\r") != data.count(b"\r\n"):
         raise TextFormatError("CR line endings (old Mac text) are not supported; convert them to LF or CRLF")
 
 
-def _scan(data, block=1 << 24):
+def _scan(data, block=1 << 24, offset=0, line=1):
     """Refuse control bytes and lines longer than MAX_LINE, block by block (bounded memory)."""
     start, line_start = 0, 0
     while start < len(data):
@@ -182,22 +209,280 @@ def _scan(data, block=1 << 24):
         if len(control):
             at = start + int(control[0])
             what = "a NUL byte" if data[at] == 0 else f"control byte 0x{data[at]:02x}"
-            raise TextFormatError(f"{what} at offset {at}: binary data or UTF-16 text, not a text point file")
+            raise TextFormatError(f"{what} at offset {offset + at}: binary data or UTF-16 text, "
+                                  "not a text point file")
         ends = np.flatnonzero(chunk == 10) + start
         if len(ends):
             lengths = np.diff(np.concatenate([[line_start], ends + 1]))
             if lengths.max() > MAX_LINE:
                 first = int(np.argmax(lengths > MAX_LINE))
-                _too_long(data, line_start + int(lengths[:first].sum()))
+                _too_long(line + data.count(b"\n", 0, line_start + int(lengths[:first].sum())))
             line_start = int(ends[-1]) + 1
         start += len(chunk)
         if start - line_start > MAX_LINE:
-            _too_long(data, line_start)
+            _too_long(line + data.count(b"\n", 0, line_start))
 
 
-def _too_long(data, at):
-    line = data.count(b"\n", 0, at) + 1
-    raise TextFormatError(f"line {line} is longer than {MAX_LINE} bytes: not a text point file")
+def _too_long(line):
+    raise TextFormatError(f"line {line} is longer than {MAX_LINE} bytes: not a text point file", line)
+
+
+def _reader(source, start):
+    """``read(n)`` over bytes or a binary file, from byte ``start``."""
+    if hasattr(source, "read"):
+        source.seek(start)
+        return source.read
+    view, at = memoryview(source), start
+
+    def read(n):
+        nonlocal at
+        chunk = bytes(view[at:at + n])
+        at += len(chunk)
+        return chunk
+    return read
+
+
+def whole_text(source, start=0):
+    """The bytes of ``source`` (bytes or a binary file) from byte ``start`` on."""
+    return _reader(source, start)(-1) if hasattr(source, "read") else bytes(memoryview(source)[start:])
+
+
+def text_blocks(source, start=0, line=1, size=BLOCK):
+    """Whole lines of a text body, about ``size`` bytes at a time, each block checked as text.
+
+    Parameters
+    ----------
+    source : bytes or binary file
+    start : int
+        Byte offset of the body in ``source``.
+    line : int
+        1-based line number of the body's first line in the file.
+
+    Yields
+    ------
+    block : bytes
+        Whole lines (the last block's last line may lack its ``\\n``).
+    line : int
+        1-based file line number of the block's first line.
+    row : int
+        0-based index of that line within the body.
+
+    Raises
+    ------
+    TextFormatError
+        As :func:`check_text`, naming the file's offset or line.
+    """
+    read, carry, offset, row = _reader(source, start), b"", start, 0
+    while True:
+        chunk = read(size)
+        if not chunk:
+            break
+        data = carry + chunk if carry else chunk
+        cut = data.rfind(b"\n") + 1
+        if not cut and len(data) > MAX_LINE:
+            _too_long(line)
+        block, carry = data[:cut], data[cut:]
+        if block:
+            yield _checked(block, offset, line, row)
+            n = block.count(b"\n")
+            offset, line, row = offset + len(block), line + n, row + n
+    if carry:
+        yield _checked(carry, offset, line, row)
+
+
+def _checked(block, offset, line, row):
+    if row == 0:
+        _check_start(block)
+    _check_lines(block, offset, line)
+    return block, line, row
+
+
+@dataclass
+class Tokens:
+    """The white-space separated tokens of a block of whole lines.
+
+    Attributes
+    ----------
+    words : list of bytes
+        Every token of the block, in order, (t,).
+    count : (m,) int64
+        Tokens on each line.
+    first : (m,) int64
+        Index into ``words`` of each line's first token.
+    head : (m,) uint8
+        First byte of each line's first token (0 on an empty line).
+    size : (m,) int64
+        Length of each line's first token (0 on an empty line).
+    line : int
+        1-based file line number of the block's first line.
+    row : int
+        0-based index of the block's first line within the body.
+    """
+
+    words: list
+    count: np.ndarray
+    first: np.ndarray
+    head: np.ndarray
+    size: np.ndarray
+    line: int = 1
+    row: int = 0
+
+
+def tokenise(block, line=1, row=0):
+    """Split a block of whole lines into tokens, with their per-line counts (vectorised).
+
+    Parameters
+    ----------
+    block : bytes
+    line, row : int
+        See :class:`Tokens`.
+
+    Returns
+    -------
+    Tokens
+    """
+    a = np.frombuffer(block, dtype=np.uint8)
+    space = _IS_SPACE[a]
+    begin, end = ~space, ~space
+    begin[1:] &= space[:-1]
+    end[:-1] &= space[1:]
+    starts, ends = np.flatnonzero(begin), np.flatnonzero(end) + 1
+    newlines = np.flatnonzero(a == 10)
+    n_lines = len(newlines) + int(len(a) > 0 and a[-1] != 10)
+    count = np.bincount(np.searchsorted(newlines, starts), minlength=n_lines).astype(np.int64)
+    first = np.cumsum(count) - count
+    head, size = np.zeros(n_lines, dtype=np.uint8), np.zeros(n_lines, dtype=np.int64)
+    has = np.flatnonzero(count)
+    head[has], size[has] = a[starts[first[has]]], (ends - starts)[first[has]]
+    return Tokens(block.split(), count, first, head, size, line, row)
+
+
+def gather(words, idx):
+    """``[words[i] for i in idx]``, the loop in C.
+
+    Parameters
+    ----------
+    words : list
+    idx : (k,) int
+
+    Returns
+    -------
+    sequence of k items
+    """
+    idx = idx.tolist()
+    return itemgetter(*idx)(words) if len(idx) > 1 else [words[i] for i in idx]
+
+
+def coordinates(tokens, lines, cols):
+    """Three coordinates from each of some lines of a block, parsed as Python floats.
+
+    Parameters
+    ----------
+    tokens : Tokens
+    lines : (k,) int
+        Line indices within the block, increasing.
+    cols : tuple of 3 int
+        Token indices of x, y, z within a line.
+
+    Returns
+    -------
+    (k, 3) float64
+
+    Raises
+    ------
+    TextFormatError
+        Naming the first line (and coordinate) that is not a number.
+    """
+    n = len(lines)
+    if n and n == len(tokens.count) and len(tokens.words) == n * int(tokens.count[0]) and \
+            (tokens.count == tokens.count[0]).all():          # every line a point line, all as wide: slices
+        width = int(tokens.count[0])
+        words = tokens.words if width == 3 and tuple(cols) == (0, 1, 2) else \
+            [w for column in zip(*(tokens.words[c::width] for c in cols)) for w in column]
+    else:
+        words = gather(tokens.words, (tokens.first[lines][:, None] + np.asarray(cols, dtype=np.int64)).ravel())
+    try:
+        return np.fromiter(map(float, words), dtype=np.float64, count=3 * n).reshape(-1, 3)
+    except ValueError:
+        k = next(k for k, w in enumerate(words) if not _is_float(w))
+        lineno = tokens.line + int(lines[k // 3])
+        raise TextFormatError(f"line {lineno}: coordinate {'xyz'[k % 3]} ({describe_value(words[k])}) "
+                              "is not a number", lineno) from None
+
+
+def line_words(tokens, j):
+    """The tokens of line ``j`` of a block (list of bytes)."""
+    a = int(tokens.first[j])
+    return tokens.words[a:a + int(tokens.count[j])]
+
+
+def _parts(source, parse, state, start, line):
+    """``parse(tokens, state)`` of every block of ``source``; one part of empty arrays for an empty body."""
+    empty = True
+    for block, first, row in text_blocks(source, start, line):
+        empty = False
+        yield parse(tokenise(block, first, row), state)
+    if empty:
+        yield parse(tokenise(b"", line, 0), state)
+
+
+def read_blocks(source, parse, new_state, *, start=0, line=1):
+    """Check every line of a text body block by block, then return its parsed arrays.
+
+    The first pass keeps what ``parse`` returns only while it is under
+    :data:`KEEP` bytes, so a file refused near its end has cost one block's
+    memory; a larger valid file is parsed again, by the same function, into
+    arrays of the counted size.
+
+    Parameters
+    ----------
+    source : bytes or binary file
+    parse : callable
+        ``parse(tokens, state)`` -> tuple of arrays for one block (each
+        ``(k, ...)``); raises :class:`TextFormatError` for a bad line.
+    new_state : callable
+        ``new_state(totals)`` -> a fresh state (``totals``: None in the
+        first pass, else the array lengths it counted).  ``state.finish(totals)``
+        raises for what only the end can tell, or returns True when a check
+        needs the totals (a pass with them then names the line).
+    start, line : int
+        The body's byte offset and first line number.
+
+    Returns
+    -------
+    list of arrays
+    """
+    state = new_state(None)
+    totals, kept, held = None, [], 0
+    for part in _parts(source, parse, state, start, line):
+        totals = [len(p) for p in part] if totals is None else [t + len(p) for t, p in zip(totals, part)]
+        held += sum(p.nbytes for p in part)
+        if held > KEEP:
+            kept = None
+        elif kept is not None:
+            kept.append(part)
+    if state.finish(totals):
+        for _ in _parts(source, parse, new_state(totals), start, line):
+            pass
+        raise TextFormatError("the file changed while it was read")
+    if kept is not None:
+        return [np.concatenate(arrays) for arrays in zip(*kept)]
+    return _filled(_parts(source, parse, new_state(totals), start, line), totals)
+
+
+def _filled(parts, totals):
+    """The parts' arrays copied into arrays of the counted lengths."""
+    out, at = None, [0] * len(totals)
+    for part in parts:
+        out = out or [np.empty((n,) + p.shape[1:], dtype=p.dtype) for n, p in zip(totals, part)]
+        for k, p in enumerate(part):
+            if at[k] + len(p) > totals[k]:
+                raise TextFormatError("the file changed while it was read")
+            out[k][at[k]:at[k] + len(p)] = p
+            at[k] += len(p)
+    if at != totals:
+        raise TextFormatError("the file changed while it was read")
+    return out
 
 
 def split_lines(data):
@@ -212,11 +497,6 @@ def split_lines(data):
     list of bytes
     """
     return data.split(b"\n")
-
-
-def _is_skipped(line):
-    stripped = line.strip()
-    return not stripped or stripped.startswith(b"#")
 
 
 def parse_coords(tokens, cols, lineno):
@@ -255,38 +535,71 @@ def read_xyz(data):
 
     Parameters
     ----------
-    data : bytes
+    data : bytes or binary file
 
     Returns
     -------
     TextTable
     """
-    check_text(data)
-    lines = split_lines(data)
-    rows, coords, width = [], [], None
-    for i, line in enumerate(lines):
-        if _is_skipped(line):
-            continue
-        tokens = line.split()
-        width = _check_width(tokens, width, i + 1)
-        rows.append(i)
-        coords.append(parse_coords(tokens, (0, 1, 2), i + 1))
-    return _table(lines, rows, coords)
+    rows, points = read_blocks(data, _xyz_block, _Points)
+    return TextTable(split_lines(whole_text(data)), rows, (0, 1, 2), points)
 
 
-def _check_width(tokens, width, lineno):
-    if width is None:
-        if len(tokens) < 3:
-            raise TextFormatError(f"line {lineno}: {len(tokens)} columns, a point needs x y z")
-        return len(tokens)
-    if len(tokens) != width:
-        raise TextFormatError(f"line {lineno}: {len(tokens)} columns, the first point line has {width}")
-    return width
+class _Points:
+    """What a pass over an XYZ or PTS file carries from block to block."""
+
+    def __init__(self, totals=None):
+        self.width = None                       # columns of the first point line
+        self.left, self.count_line = None, 0    # PTS: points still due after the count line
+
+    def finish(self, totals):
+        return False
 
 
-def _table(lines, rows, coords):
-    points = np.asarray(coords, dtype=np.float64).reshape(-1, 3)
-    return TextTable(lines, np.asarray(rows, dtype=np.int64), (0, 1, 2), points)
+class _PtsPoints(_Points):
+    def finish(self, totals):
+        if self.left is None:
+            raise TextFormatError("no point count line (a PTS file starts with the number of points)")
+        if self.left:
+            raise TextFormatError(f"line {self.count_line} declares more points than follow "
+                                  f"({self.left} missing)", self.count_line)
+        return False
+
+
+def _data_lines(tokens):
+    """(k,) indices of a block's lines that hold data: not blank, not a ``#`` comment."""
+    return np.flatnonzero((tokens.count > 0) & (tokens.head != ord("#")))
+
+
+def _xyz_block(tokens, state):
+    return _point_lines(tokens, _data_lines(tokens), state)
+
+
+def _point_lines(tokens, lines, state, pending=None):
+    """(rows (k,) int64, points (k, 3)) of a block's point lines; every line as wide as the first.
+
+    ``pending`` is an error found at a later line of the block: it is raised
+    once the lines before it are checked, so the first bad line is the one named.
+    """
+    if state.width is None and len(lines):
+        n = int(tokens.count[lines[0]])
+        if n < 3:
+            raise TextFormatError(f"line {tokens.line + lines[0]}: {n} columns, a point needs x y z",
+                                  tokens.line + int(lines[0]))
+        state.width = n
+    wrong = np.flatnonzero(tokens.count[lines] != state.width)
+    if len(wrong):
+        at = int(lines[wrong[0]])
+        lineno = tokens.line + at
+        if pending is None or lineno < pending.line:
+            pending = TextFormatError(f"line {lineno}: {tokens.count[at]} columns, the first point line has "
+                                      f"{state.width}", lineno)
+    if pending is not None:
+        lines = lines[lines < pending.line - tokens.line]
+    points = coordinates(tokens, lines, (0, 1, 2))
+    if pending is not None:
+        raise pending
+    return tokens.row + lines.astype(np.int64), points
 
 
 def read_pts(data):
@@ -294,38 +607,40 @@ def read_pts(data):
 
     Parameters
     ----------
-    data : bytes
+    data : bytes or binary file
 
     Returns
     -------
     TextTable
     """
-    check_text(data)
-    lines = split_lines(data)
-    rows, coords, width = [], [], None
-    left, count_line = None, 0
-    for i, line in enumerate(lines):
-        if _is_skipped(line):
+    rows, points = read_blocks(data, _pts_block, _PtsPoints)
+    return TextTable(split_lines(whole_text(data)), rows, (0, 1, 2), points)
+
+
+def _pts_block(tokens, state):
+    """Count lines and the point lines each announces, across block ends."""
+    lines, points, p, pending = _data_lines(tokens), [], 0, None
+    while p < len(lines):
+        if not state.left:
+            j = int(lines[p])
+            try:
+                state.left, state.count_line = _count(line_words(tokens, j), tokens.line + j), tokens.line + j
+            except TextFormatError as exc:
+                pending = exc
+                break
+            p += 1
             continue
-        tokens = line.split()
-        if not left:
-            left, count_line = _count(tokens, i + 1), i + 1
-            continue
-        width = _check_width(tokens, width, i + 1)
-        rows.append(i)
-        coords.append(parse_coords(tokens, (0, 1, 2), i + 1))
-        left -= 1
-    if left is None:
-        raise TextFormatError("no point count line (a PTS file starts with the number of points)")
-    if left:
-        raise TextFormatError(f"line {count_line} declares more points than follow ({left} missing)")
-    return _table(lines, rows, coords)
+        take = min(state.left, len(lines) - p)
+        points.append(lines[p:p + take])
+        state.left, p = state.left - take, p + take
+    taken = np.concatenate(points) if points else np.zeros(0, dtype=np.int64)
+    return _point_lines(tokens, taken, state, pending)
 
 
 def _count(tokens, lineno):
     if len(tokens) != 1 or not tokens[0].isdigit():
         raise TextFormatError(f"line {lineno}: expected a point count, found {describe_value(b' '.join(tokens))} "
-                              "(more point lines than the count declares, or no count line)")
+                              "(more point lines than the count declares, or no count line)", lineno)
     return int(tokens[0])
 
 

@@ -235,7 +235,7 @@ def _big_ascii_ply(n_vertices=800_000, n_faces=800_000, declared_faces=None, bad
 ASCII_CASES = {
     "one_face_missing.ply": (_big_ascii_ply(declared_faces=800_001), "800001 face records, the body holds 800000"),
     "one_face_more.ply": (_big_ascii_ply(declared_faces=799_999), "799999 face records, the body holds 800000"),
-    "bad_last_token.ply": (_big_ascii_ply(bad_last=True), "face line 800000: value 3 is not an integer"),
+    "bad_last_token.ply": (_big_ascii_ply(bad_last=True), "line 1600009, face 799999: a vertex index is not an integer"),
 }
 
 
@@ -454,3 +454,68 @@ def test_a_valid_file_still_round_trips_after_the_checks(tmp_path):
     (tmp_path / "ok_c.pcd").write_bytes(data)
     assert np.array_equal(read_points(tmp_path / "ok_c.pcd").points, pcd.points)
     assert lzf_compress(b"") == b""
+
+
+# -- cause: a large text file whose defect sits on its very last line costs bounded memory ----------------
+
+BIG_TEXT_MB = 100            # memory, not time, is what scales: the old readers peaked at several times this
+_REAL = b"-12345.678901234567 -12345.678901234567 -12345.678901234567"
+
+
+def _big_text(path, size_mb=BIG_TEXT_MB):
+    """A text point file of about ``size_mb`` MB whose last line holds a bad token: (path, its line number)."""
+    fmt = path.suffix[1:]
+    prefix = {"obj": b"v "}.get(fmt, b"")
+    line = prefix + _REAL + b"\n"
+    block = line * ((4 << 20) // len(line))
+    repeats = (size_mb << 20) // len(block)
+    n = repeats * (len(block) // len(line)) + 1                # points, the bad last one included
+    head = {"pts": f"{n}\n".encode(), "pcd": _pcd(n, "ascii", body=b""),
+            "ply": _ply(0, "ascii", declared=n)}.get(fmt, b"")
+    with open(path, "wb") as f:
+        f.write(head)
+        for _ in range(repeats):
+            f.write(block)
+        f.write(prefix + b"1 2 x\n")
+    return path, head.count(b"\n") + n
+
+
+def _peak_over_baseline(path, tmp_path):
+    """(message, peak MB of a child reading ``path`` minus that of one reading a 3-point file)."""
+    small = tmp_path / f"small{path.suffix}"
+    small.write_bytes(b"v 0 0 0\nv 1 0 0\nv 0 1 0\n" if path.suffix == ".obj" else
+                      _ply(3, "ascii") if path.suffix == ".ply" else _pcd(3, "ascii") if path.suffix == ".pcd"
+                      else (b"3\n" if path.suffix == ".pts" else b"") + b"0 0 0\n1 0 0\n0 1 0\n")
+    messages, base = _read_in_child([small])
+    assert messages[str(small)] == "ok", messages
+    messages, peak = _read_in_child([path])
+    return messages[str(path)], peak - base
+
+
+@pytest.mark.parametrize("name", ["big.xyz", "big.pts", "big.obj", "big.pcd", "big.ply"])
+def test_a_large_text_file_bad_on_its_last_line_is_refused_in_bounded_memory(tmp_path, name):
+    path, last = _big_text(tmp_path / name)
+    try:
+        message, over = _peak_over_baseline(path, tmp_path)
+    finally:
+        path.unlink()
+    assert message.startswith(f"{path}: line {last}") and "not a number" in message and "\n" not in message, message
+    assert over < 100, f"peak {over:.0f} MB over the interpreter's for a {BIG_TEXT_MB} MB file"
+
+
+# -- cause: binary PLY lists of several lengths whose data ends long before the declared count ----------
+
+def test_a_binary_mesh_of_mixed_lists_cut_short_is_refused_quickly(tmp_path):
+    rec = np.zeros(1_000_000, dtype=[("n3", "u1"), ("t", "<i4", (3,)), ("n4", "u1"), ("q", "<i4", (4,))])
+    rec["n3"], rec["n4"], rec["q"] = 3, 4, [0, 1, 2, 3]            # triangles and quads, alternating
+    data = _ply(10).replace(b"end_header", b"element face 6000000\nproperty list uchar int vertex_indices"
+                                           b"\nend_header") + rec.tobytes()
+    path = _write(tmp_path, "mixed.ply", data)
+    code = ("import json, sys, time; from pipeline.io.pointcloud import InputError, read_points; t = time.time()\n"
+            "try:\n    read_points(sys.argv[1]); m = 'ok'\nexcept InputError as e:\n    m = str(e)\n"
+            "print(json.dumps([m, time.time() - t]))")
+    run = subprocess.run([sys.executable, "-c", code, str(path)], cwd=ROOT, capture_output=True, text=True,
+                         timeout=60)
+    message, seconds = json.loads(run.stdout)
+    assert message == f"{path}: truncated: face 2000000 of 6000000 is cut off", message
+    assert seconds < 8, f"{seconds:.1f} s for 2 million records (the per-record reader took about 8)"
