@@ -445,7 +445,7 @@ def _rescan(sub, keep):
 
 
 def _triage_one(args):
-    from pipeline.orchestrate.scan import triage
+    from pipeline.orchestrate.candidates import triage
 
     return triage(*args)
 
@@ -464,13 +464,13 @@ def candidates_bench():
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
-    from pipeline.orchestrate.scan import _build_index, _candidates, _reference
+    from pipeline.orchestrate.candidates import candidates as _candidates
+    from pipeline.orchestrate.scan import _ranked_by, _reference
 
     work = ROOT / "bench" / "results" / "leaks"
     truth = json.loads((work / "truth.json").read_text())
     cfg = _config(work, work / "manifests", work / "marked", "bench")
-    *_, descriptors, cat_version, _, paths = _reference(cfg, SECRET)
-    index_path = _build_index(work / "scan", cat_version, paths)
+    index_path, descriptors = _ranked_by(_reference(cfg, SECRET), work / "scan")
     recorded = _results(work / "scan", key="sha")     # by content: a leak drawn again was not scanned there
     names = sorted(n for n in truth if (work / "suspects" / f"{n}.ply").exists())
     t0 = time.perf_counter()

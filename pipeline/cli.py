@@ -290,6 +290,8 @@ def cmd_detect_ledger(args):
                      f"over the best innocent")
     if not result["accused"] and result["best_score"] is not None:
         lines.append(f"  best score {result['best_score']:.2f} (p = {result['p_value']:.3g}): nobody accused")
+    if result.get("n_unchecked"):
+        lines.append(f"  unchecked: {result['unchecked']} (the secret given cannot open them)")
     _emit(args, result, lines)
     return 0
 

@@ -204,8 +204,9 @@ _CACHE: dict = {}
 
 
 def _original(points, spacing, target, normals=None):
-    key = (points.shape, hashlib.sha1(np.ascontiguousarray(points[:: max(1, len(points) // 1000)])).hexdigest(),
-           round(spacing, 12), target)
+    # keyed by the hash of every coordinate: two originals that differ in one point never share state
+    content = np.ascontiguousarray(points, dtype=np.float64)
+    key = (points.shape, hashlib.sha256(content.tobytes()).hexdigest(), float(spacing), target)
     if key not in _CACHE:
         _CACHE.clear()
         _CACHE[key] = _Original(points, spacing, target)

@@ -165,7 +165,7 @@ def blob_family():
                                    "random_similarity+clutter:3", "outliers:0.5"])
 def test_shape_views_find_blobs_that_local_descriptors_cannot_tell_apart(blob_family, chain):
     # what the scan checks from this ranking: the top 3, and up to 6 within 1.6 x the nearest
-    from pipeline.orchestrate.scan import _candidates
+    from pipeline.orchestrate.candidates import candidates as _candidates
 
     shapes, index = blob_family
     steps = [surface.parse_attack(s) for s in chain.split("+")] + [("shuffle", None)]
@@ -254,3 +254,18 @@ def test_the_rotation_search_declines_a_suspect_without_spacing():
     spacing = float(np.median(nearest_spacing(shape)))
     coincident = np.repeat(shape[:1], 100, axis=0)       # one point 100 times: no spacing, no scale
     assert features.register_search(coincident, shape, spacing=spacing) is None
+
+
+def test_two_originals_differing_in_one_point_never_share_registration_state():
+    # the registration target was once cached under a hash of every ~1,000th point: a revised
+    # original that differs elsewhere got the old tree, keypoints and normals
+    from pipeline.features import _original
+    from pipeline.demo import procedural_shape
+
+    a = procedural_shape("blob", 5000, seed=3)
+    b = a.copy()
+    b[1001] += 0.25                                      # between the old sample's rows
+    ta, tb = _original(a, 0.02, 4000), _original(b, 0.02, 4000)
+    assert ta is not tb
+    assert np.array_equal(tb.tree.data, b) and not np.array_equal(tb.tree.data, a)
+    assert _original(a, 0.02, 4000).tree.data[1001].tolist() == a[1001].tolist()

@@ -33,3 +33,57 @@ def test_production_code_never_imports_the_evaluation():
 
 def test_the_evaluation_lives_beside_the_other_dask_graphs():
     assert (PACKAGE / "orchestrate" / "evaluate.py").is_file() and not (PACKAGE / "evaluate.py").exists()
+
+
+def _module_name(path):
+    rel = path.relative_to(PACKAGE.parent).with_suffix("")
+    parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
+    return ".".join(parts)
+
+
+def _package_imports():
+    """{module: [(imported module, [names])]} of every import in the package, function-level ones included."""
+    modules = {_module_name(p): p for p in PACKAGE.rglob("*.py")}
+    graph = {}
+    for name, path in modules.items():
+        package = name if path.name == "__init__.py" else name.rsplit(".", 1)[0]
+        out = []
+        for level, module, names in _imports(path):
+            if level:
+                base = package.split(".")[: len(package.split(".")) - (level - 1)]
+                module = ".".join(base + ([module] if module else []))
+            if not module.startswith("pipeline"):
+                continue
+            for n in names or [""]:            # "from . import x" may import a submodule x
+                target = f"{module}.{n}" if n and f"{module}.{n}" in modules else module
+                out.append((target, n))
+        graph[name] = out
+    return modules, graph
+
+
+def test_no_import_cycle_in_the_package():
+    modules, graph = _package_imports()
+    edges = {m: {t for t, _ in graph[m] if t in modules and t != m and not m.startswith(t + ".")} for m in graph}
+    state, stack = {}, []
+
+    def visit(m):
+        state[m] = "open"
+        stack.append(m)
+        for t in sorted(edges[m]):
+            if state.get(t) == "open":
+                raise AssertionError("import cycle: " + " -> ".join(stack[stack.index(t):] + [t]))
+            if t not in state:
+                visit(t)
+        stack.pop()
+        state[m] = "done"
+
+    for m in sorted(edges):
+        if m not in state:
+            visit(m)
+
+
+def test_no_module_imports_another_modules_private_names():
+    _, graph = _package_imports()
+    private = [(m, t, n) for m, imports in graph.items() for t, n in imports
+               if n.startswith("_") and not n.startswith("__")]
+    assert not private, private

@@ -39,7 +39,6 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 import pyarrow as pa
-import pyarrow.dataset as ds
 import pyarrow.parquet as pq
 
 __all__ = ["LEDGER_SCHEMA", "LEDGER_VERSION", "MAC_FIELDS", "Ledger", "LedgerError"]

@@ -15,7 +15,9 @@ One path for ``pointmark detect --ledger`` and ``pointmark scan``:
 
 from __future__ import annotations
 
+import hmac
 import json
+import sys
 import time
 from collections import defaultdict
 from pathlib import Path
@@ -23,13 +25,16 @@ from pathlib import Path
 import numpy as np
 
 from ..io.basis_store import BasisStore
+from ..io.ledger import MAC_FIELDS
 from ..io.pointcloud import InputError, read_points, sha256_file
-from ..kernels import fingerprint
+from ..io.secrets import SecretError
+from ..kernels import fingerprint, keys
 from ..watermark import WatermarkParams, estimate_differences, fingerprint_length, fingerprint_observation
 from .reference import load_reference
 from .tasks import copy_label
 
-__all__ = ["params_from_row", "check_asset", "decide", "usable_rows", "original_files", "TOP"]
+__all__ = ["params_from_row", "check_asset", "decide", "usable_rows", "original_files", "held_rows", "unheld_copies",
+           "unheld_summary", "TOP"]
 
 TOP = 8          # best scores kept per reference and key, beyond those over the floor
 FLOOR = 4.0      # scores kept whatever their rank (an accusation needs more than 5 at any scale)
@@ -227,3 +232,94 @@ def decide(checks, epsilon, prior_checked=0, planned=0):
     result["best_score"] = None if best is None else best[0]
     result["p_value"] = 1.0 if best is None else fingerprint.corrected_p(best[0], n_checked)
     return result
+
+
+_SEAL_HINT = "; rows of a ledger older than row MACs verify once sealed: pointmark ledger seal LEDGER"
+
+
+def held_rows(ledger, secret, *, report=None):
+    """Issued rows of the ledger whose key the secret opens and whose row MAC holds, and their key materials.
+
+    Every row whose key fingerprint the secret opens must carry the
+    ``row_mac`` that :func:`pipeline.kernels.keys.row_mac` gives under the
+    secret's ledger MAC key: a row whose MAC is missing or wrong (a part
+    file dropped into ``copies/`` by someone without the secret, a recipient
+    or sha256 rewritten) is set aside as untrusted, said on stderr once per
+    part file, and never used, neither for an exact-hash attribution nor as
+    a recipient that can be accused.
+
+    Parameters
+    ----------
+    ledger : Ledger
+    secret : bytes
+    report : dict, optional
+        Filled with ``unheld`` (issued rows under keys the secret does not
+        open: they cannot be checked, nor their MACs verified) and
+        ``untrusted`` (ledger part name -> rows set aside).
+
+    Raises
+    ------
+    InputError
+        The folder holds no issued copy.
+    SecretError
+        The secret matches none of the key fingerprints recorded, or every
+        row it opens fails its MAC.
+    """
+    rows = ledger.rows()
+    if not rows:
+        raise InputError(f"{ledger.folder}: no issued copy in this ledger (is it output.manifests of a run?)")
+    fingerprints = {keys.key_fingerprint(secret, salt) for salt in {r["key_salt"] for r in rows}}
+    opened = usable_rows(rows, fingerprints)
+    if not opened:
+        raise SecretError(f"{ledger.folder}: the secret matches none of the key fingerprints of the issued copies "
+                          f"(wrong or rotated secret?)")
+    mac_key = keys.ledger_mac_key(secret)
+    untrusted = defaultdict(list)
+    usable = []
+    for r in opened:
+        mac = r.get("row_mac")
+        if isinstance(mac, str) and hmac.compare_digest(mac, keys.row_mac(mac_key, r, MAC_FIELDS)):
+            usable.append(r)
+        else:
+            untrusted[r["ledger_part"]].append(r)
+    for part, bad in sorted(untrusted.items()):
+        missing = sum(r.get("row_mac") is None for r in bad)
+        print(f"[pointmark] ledger: {ledger.copies / part}: {len(bad)} row(s) under this secret's key set aside as "
+              f"untrusted, never used to attribute or accuse ({len(bad) - missing} with a wrong row MAC, {missing} "
+              f"without one{_SEAL_HINT if missing else ''})", file=sys.stderr, flush=True)
+    if not usable:
+        raise SecretError(f"{ledger.folder}: none of the {len(opened)} issued rows under this secret's key carries "
+                          f"a valid row MAC (altered, or written before row MACs{_SEAL_HINT})")
+    if report is not None:
+        report["unheld"] = [r for r in rows if r["status"] == "ok" and r["mark"] == "fingerprint"
+                            and r["key_fingerprint"] not in fingerprints]
+        report["untrusted"] = dict(untrusted)
+    materials = {k: keys.derive_key_material(secret, k) for k in {r["key_id"] for r in usable}}
+    return usable, materials
+
+
+def unheld_copies(unheld, candidates, suspect_sha256):
+    """The copies under keys not held that a suspect may be: its exact bytes, or copies of a candidate asset.
+
+    Parameters
+    ----------
+    unheld : list of dict
+        Issued rows under keys the secret does not open (:func:`held_rows`).
+    candidates : set of str
+        Asset keys the suspect was (or would have been) checked against.
+    suspect_sha256 : str
+
+    Returns
+    -------
+    list of dict
+    """
+    return [r for r in unheld if r["asset_key"] in candidates or r["output_sha256"] == suspect_sha256]
+
+
+def unheld_summary(rows):
+    """One line per key: "N copies under key ID (fingerprint F)", for rows under keys not held."""
+    by_key = defaultdict(int)
+    for r in rows:
+        by_key[(r["key_id"], r["key_fingerprint"])] += 1
+    return "; ".join(f"{n} cop{'y' if n == 1 else 'ies'} under key {k} (fingerprint {f})"
+                     for (k, f), n in sorted(by_key.items()))

@@ -13,111 +13,17 @@ and ``n_unchecked``.
 from __future__ import annotations
 
 import hashlib
-import hmac
-import sys
 from collections import defaultdict
 from pathlib import Path
 
 from .. import config
-from ..io.ledger import MAC_FIELDS, Ledger
+from ..io.ledger import Ledger
 from ..io.pointcloud import InputError, read_points, sha256_file
-from ..io.secrets import SecretError
-from ..kernels import keys
 from ..kernels.descriptor import d2_descriptor
-from .attribute import check_asset, decide, original_files, usable_rows
+from .attribute import check_asset, decide, held_rows, original_files, unheld_copies, unheld_summary
+from .candidates import build_index, candidates, load_index, planned_recipients, triage
 
-__all__ = ["detect_from_ledger", "held_rows", "candidate_groups", "unheld_copies", "unheld_summary"]
-
-
-_SEAL_HINT = "; rows of a ledger older than row MACs verify once sealed: pointmark ledger seal LEDGER"
-
-
-def held_rows(ledger, secret, *, report=None):
-    """Issued rows of the ledger whose key the secret opens and whose row MAC holds, and their key materials.
-
-    Every row whose key fingerprint the secret opens must carry the
-    ``row_mac`` that :func:`pipeline.kernels.keys.row_mac` gives under the
-    secret's ledger MAC key: a row whose MAC is missing or wrong (a part
-    file dropped into ``copies/`` by someone without the secret, a recipient
-    or sha256 rewritten) is set aside as untrusted, said on stderr once per
-    part file, and never used, neither for an exact-hash attribution nor as
-    a recipient that can be accused.
-
-    Parameters
-    ----------
-    ledger : Ledger
-    secret : bytes
-    report : dict, optional
-        Filled with ``unheld`` (issued rows under keys the secret does not
-        open: they cannot be checked, nor their MACs verified) and
-        ``untrusted`` (ledger part name -> rows set aside).
-
-    Raises
-    ------
-    InputError
-        The folder holds no issued copy.
-    SecretError
-        The secret matches none of the key fingerprints recorded, or every
-        row it opens fails its MAC.
-    """
-    rows = ledger.rows()
-    if not rows:
-        raise InputError(f"{ledger.folder}: no issued copy in this ledger (is it output.manifests of a run?)")
-    fingerprints = {keys.key_fingerprint(secret, salt) for salt in {r["key_salt"] for r in rows}}
-    opened = usable_rows(rows, fingerprints)
-    if not opened:
-        raise SecretError(f"{ledger.folder}: the secret matches none of the key fingerprints of the issued copies "
-                          f"(wrong or rotated secret?)")
-    mac_key = keys.ledger_mac_key(secret)
-    untrusted = defaultdict(list)
-    usable = []
-    for r in opened:
-        mac = r.get("row_mac")
-        if isinstance(mac, str) and hmac.compare_digest(mac, keys.row_mac(mac_key, r, MAC_FIELDS)):
-            usable.append(r)
-        else:
-            untrusted[r["ledger_part"]].append(r)
-    for part, bad in sorted(untrusted.items()):
-        missing = sum(r.get("row_mac") is None for r in bad)
-        print(f"[pointmark] ledger: {ledger.copies / part}: {len(bad)} row(s) under this secret's key set aside as "
-              f"untrusted, never used to attribute or accuse ({len(bad) - missing} with a wrong row MAC, {missing} "
-              f"without one{_SEAL_HINT if missing else ''})", file=sys.stderr, flush=True)
-    if not usable:
-        raise SecretError(f"{ledger.folder}: none of the {len(opened)} issued rows under this secret's key carries "
-                          f"a valid row MAC (altered, or written before row MACs{_SEAL_HINT})")
-    if report is not None:
-        report["unheld"] = [r for r in rows if r["status"] == "ok" and r["mark"] == "fingerprint"
-                            and r["key_fingerprint"] not in fingerprints]
-        report["untrusted"] = dict(untrusted)
-    materials = {k: keys.derive_key_material(secret, k) for k in {r["key_id"] for r in usable}}
-    return usable, materials
-
-
-def unheld_copies(unheld, candidates, suspect_sha256):
-    """The copies under keys not held that a suspect may be: its exact bytes, or copies of a candidate asset.
-
-    Parameters
-    ----------
-    unheld : list of dict
-        Issued rows under keys the secret does not open (:func:`held_rows`).
-    candidates : set of str
-        Asset keys the suspect was (or would have been) checked against.
-    suspect_sha256 : str
-
-    Returns
-    -------
-    list of dict
-    """
-    return [r for r in unheld if r["asset_key"] in candidates or r["output_sha256"] == suspect_sha256]
-
-
-def unheld_summary(rows):
-    """One line per key: "N copies under key ID (fingerprint F)", for rows under keys not held."""
-    by_key = defaultdict(int)
-    for r in rows:
-        by_key[(r["key_id"], r["key_fingerprint"])] += 1
-    return "; ".join(f"{n} cop{'y' if n == 1 else 'ies'} under key {k} (fingerprint {f})"
-                     for (k, f), n in sorted(by_key.items()))
+__all__ = ["detect_from_ledger", "candidate_groups"]
 
 
 def candidate_groups(rows, asset=None):
@@ -141,7 +47,6 @@ def _rank(suspect_path, groups, top_k, store):
     all returned, ranked, so the first match comes early.  Returns (asset,
     source sha256) keys.
     """
-    from .scan import _build_index, _candidates, _index, triage   # (scan imports this module)
 
     if len(groups) == 1:
         return list(groups)
@@ -149,11 +54,11 @@ def _rank(suspect_path, groups, top_k, store):
     found = {g: original_files(groups[g], store=store)[0] for g in keys.values()}
     paths = {k: found[g].get(g[1], groups[g][-1]["source_path"]) for k, g in keys.items()}
     version = hashlib.sha256("\n".join(sorted(keys)).encode()).hexdigest()[:16]
-    index_path = _build_index(store, version, paths)
-    indexed = set(_index(index_path).keys) if index_path else set()
+    index_path = build_index(store, version, paths)
+    indexed = set(load_index(index_path).keys) if index_path else set()
     descriptors = {k: None if k in indexed else _whole_d2(paths[k]) for k in keys}   # D2 for what it lacks
     info = triage(suspect_path, descriptors, index_path)
-    return [keys[k] for k in _candidates(info, set(keys), top_k)]
+    return [keys[k] for k in candidates(info, set(keys), top_k)]
 
 
 def _whole_d2(path):
@@ -167,7 +72,6 @@ def _check_in_order(suspect, candidates, groups, materials, store, detect_params
     The threshold counts every recipient of every candidate planned, so
     stopping early adds no chance to accuse.
     """
-    from .scan import planned_recipients
 
     planned = planned_recipients([groups[c] for c in candidates], materials)
     checks = []

@@ -57,29 +57,26 @@ Exit status: 0 no match, 1 at least one match, 2 bad config or secret,
 
 from __future__ import annotations
 
-import functools
 import hashlib
 import json
 import sys
 import time
-import zipfile
 from collections import defaultdict
 from datetime import datetime, timezone
 from pathlib import Path
 
-import numpy as np
 import pyarrow as pa
 
 from .. import __version__, config as config_mod
-from ..io.basis_store import find_file, write_file
 from ..io.catalog import list_suspects, read_catalogue
 from ..io.evidence import plain_text, render_match, write_summary
 from ..io.ledger import Ledger
 from ..io.manifest import read_rows, write_rows
+from ..io.paths import check_apart, source_folders
 from ..io.pointcloud import InputError, atomic_write_bytes, read_points, sha256_file
-from ..kernels.descriptor import d2_descriptor, descriptor_distance
-from .attribute import check_asset, decide, original_files
-from .detect import held_rows, unheld_copies, unheld_summary
+from ..kernels.descriptor import d2_descriptor
+from .attribute import check_asset, decide, held_rows, original_files, unheld_copies, unheld_summary
+from .candidates import build_index, candidates, load_index, planned_recipients, triage
 
 __all__ = ["SCAN_SCHEMA", "run_scan", "read_scan", "render_evidence"]
 
@@ -120,101 +117,6 @@ SCAN_SCHEMA = pa.schema([
     ("tool_version", pa.string()),
     ("scanned_at", pa.timestamp("ms", tz="UTC")),
 ])
-
-
-@functools.lru_cache(maxsize=2)
-def _index(path):
-    from ..features import FeatureIndex
-
-    return FeatureIndex.load(path)
-
-
-MIN_POINTS = 16     # under this a suspect's shape and marks cannot be measured: failed, never ranked
-
-
-def triage(suspect_path, descriptors, index_path):
-    """Read a suspect, hash it, rank every catalogue asset two ways.
-
-    ``ranking``: by shape distribution (D2), the suspect's views (it whole,
-    without outliers, each separate object) against each asset's (whole,
-    cut as a crop cuts it, and without outliers), right for whole copies,
-    scenes, outliers and crops; ``index_ranking``: by votes of local descriptors (FPFH) over the
-    catalogue index, right for parts of an asset and assets inside a scene.
-    """
-    t0 = time.perf_counter()
-    points = read_points(suspect_path).points
-    if len(points) < MIN_POINTS:
-        raise InputError(f"{suspect_path}: {len(points)} point(s): too few to hold a watermark (at least {MIN_POINTS})")
-    names = list(descriptors)
-    shaped, index_ranking = {}, []
-    if index_path:
-        index = _index(index_path)
-        shaped = dict(zip(index.keys, index.shape_distances(points)))
-        index_ranking = [k for k, _ in index.rank(points, top_k=len(names))]
-    # assets the index lacks (unreadable when it was built) keep the catalogue's whole-asset D2
-    missing = [k for k in names if k not in shaped]
-    if missing:
-        whole = np.atleast_1d(descriptor_distance(d2_descriptor(points - points.mean(axis=0)),
-                                                  np.array([descriptors[k] for k in missing])))
-        shaped.update(zip(missing, whole))
-    dist = np.array([shaped[k] for k in names])
-    order = np.argsort(dist, kind="stable")
-    return {"path": str(suspect_path), "sha256": sha256_file(suspect_path), "n_points": len(points),
-            "ranking": [names[i] for i in order], "distances": [float(dist[i]) for i in order],
-            "index_ranking": index_ranking, "seconds": time.perf_counter() - t0}
-
-
-def _candidates(info, view, top_k, margin=1.6):
-    """Candidates among the assets in view, alternating between the rankings (best of each first).
-
-    The top-K of each ranking, and also, up to 2K from the shape ranking,
-    the assets whose shape distance is within ``margin`` times the nearest
-    in view (near-identical assets tie there).
-    """
-    by_votes = [a for a in info["index_ranking"] if a in view][:top_k]
-    shaped = [(a, d) for a, d in zip(info["ranking"], info["distances"]) if a in view]
-    by_shape = [a for i, (a, d) in enumerate(shaped)
-                if i < top_k or (i < 2 * top_k and d <= margin * shaped[0][1])]
-    pick = [a for pair in zip(by_shape, by_votes) for a in pair]
-    pick += by_shape[len(by_votes):] + by_votes[len(by_shape):]
-    return list(dict.fromkeys(pick))
-
-
-INDEX_FORMAT = "v4"   # v2: inverted-file cells; v3: whole and cut shape views; v4: and the dense view
-
-
-def _loads(index_path):
-    try:
-        _index(index_path)
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile):
-        return False
-    return True
-
-
-def _build_index(out, cat_version, catalogue_paths):
-    """The catalogue's local-descriptor index, built once per catalogue version.
-
-    Kept in ``out`` (a scan's folder, or the basis store for ``detect
-    --ledger``), or in its stand-in when ``out`` cannot be written.
-    """
-    from ..features import build_index
-
-    name = f"state/index-{INDEX_FORMAT}-{cat_version}.npz"
-    found = [p for p in find_file(out, name) if _loads(p)]      # a damaged one is rebuilt
-    if found or not catalogue_paths:
-        return str(found[0]) if found else None
-    clouds, missing = {}, []
-    for key, file in sorted(catalogue_paths.items()):
-        try:
-            clouds[key] = read_points(file).points
-        except InputError:
-            missing.append(key)          # its checks fail (and are retried); D2 still ranks it
-    if not clouds:
-        return None
-    index = build_index(clouds)
-    if missing:                          # not saved: the next scan builds it whole
-        return str(write_file(out, f"state/.index-{cat_version}-partial.npz", index.to_bytes()))
-    return str(write_file(out, name, index.to_bytes()))
 
 
 def _reference(cfg, secret):
@@ -292,8 +194,8 @@ def _ranked_by(ref, out):
     version = ref["cat_version"]
     if extra:      # a catalogue version's index never mixes with one that ranks ledger-only assets
         version = hashlib.sha256((version + "\n".join(f"{a}={ref['paths'][a]}" for a in extra)).encode()).hexdigest()[:16]
-    index_path = _build_index(out, version, ref["paths"])
-    indexed = set(_index(index_path).keys) if index_path else set()
+    index_path = build_index(out, version, ref["paths"])
+    indexed = set(load_index(index_path).keys) if index_path else set()
     descriptors = dict(ref["descriptors"])
     for asset in extra:
         if asset not in indexed:
@@ -324,6 +226,11 @@ def run_scan(cfg, secret, *, force=False):
     versions = (ledger.version(), ref["cat_version"])
     out = Path(sc["out"])
     suspects, others = _suspects(sc["suspects"], out)
+    catalogue_files = [p for p in ref["paths"].values()]
+    check_apart([("scan.out", out)],
+                [("suspects folder", f) for f in source_folders(sc["suspects"], [p for p, _ in suspects])]
+                + [("catalogue folder", f) for f in source_folders(sc["catalogue"], catalogue_files)],
+                catalogue_files)
     detect_params = config_mod.detect_params(cfg)
     store = ref["store"]
     out.mkdir(parents=True, exist_ok=True)
@@ -368,7 +275,7 @@ def run_scan(cfg, secret, *, force=False):
                     continue
                 view = _scope(issued, prev, state, out)
                 info["prev"] = prev
-                info["candidates"] = _candidates(info, set(view) | set(ref["unheld"]), sc["top_k"],
+                info["candidates"] = candidates(info, set(view) | set(ref["unheld"]), sc["top_k"],
                                                  sc["shape_margin"])
                 info["unheld"] = unheld_copies([r for rows in ref["unheld"].values() for r in rows],
                                                set(info["candidates"]), info["sha256"])
@@ -450,24 +357,6 @@ def _notices(ref, others):
         lines.append(f"{len(others)} file(s) of other formats or hidden (temporary) among the suspects were not "
                      f"scanned, e.g. {others[0]}")
     return lines
-
-
-def planned_recipients(candidate_rows, materials):
-    """Recipients a suspect may be scored against: every (reference, key, generation, recipient) held.
-
-    Parameters
-    ----------
-    candidate_rows : list of list of dict
-        Issued ledger rows of each candidate asset.
-    materials : dict key_id -> bytes
-
-    Returns
-    -------
-    int
-        An upper bound on what :func:`check_asset` scores for these candidates.
-    """
-    return sum(len({(r["reference_key"], r["key_id"], r["generation_id"], r["recipient"])
-                    for r in rows if r["key_id"] in materials}) for rows in candidate_rows)
 
 
 def _prior(info):

@@ -4,7 +4,7 @@ import numpy as np
 
 from pipeline.kernels import fingerprint
 from pipeline.orchestrate.attribute import decide
-from pipeline.orchestrate.scan import planned_recipients
+from pipeline.orchestrate.candidates import planned_recipients
 
 
 def _check(scores, asset="a"):

@@ -1,6 +1,6 @@
 """Which catalogue assets a scan checks for a suspect, and in what order."""
 
-from pipeline.orchestrate.scan import _candidates
+from pipeline.orchestrate.candidates import candidates as _candidates
 
 
 def _info(shape, distances, votes):

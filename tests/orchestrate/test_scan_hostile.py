@@ -167,6 +167,22 @@ def test_a_suspects_folder_that_is_the_scan_output_or_a_glob_matching_nothing_is
     assert not list((world / "self.out" / "results").iterdir())
 
 
+@pytest.mark.parametrize("where", ["inside the suspects folder", "inside the catalogue folder",
+                                   "holding the catalogue"])
+def test_a_scan_output_that_touches_its_inputs_is_refused_before_anything_is_written(world, capsys, where):
+    (world / "apart").mkdir(exist_ok=True)
+    out = {"inside the suspects folder": world / "apart" / "scan", "inside the catalogue folder":
+           world / "assets" / "scan", "holding the catalogue": world}[where]
+    cfg_path = _scan(world, "apart")
+    cfg = yaml.safe_load(cfg_path.read_text())
+    cfg["scan"]["out"] = str(out)
+    cfg_path.write_text(yaml.safe_dump(cfg))
+    before = sorted(p for p in world.rglob("*"))
+    code, _, err, _ = _cli(capsys, cfg_path)
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "scan.out" in err, err
+    assert sorted(p for p in world.rglob("*")) == before
+
+
 # -- item 1: an original that left the catalogue --------------------------------------------------------------
 
 @pytest.mark.parametrize("how", ["moved into a subfolder", "deleted", "deleted with its kept copy"])

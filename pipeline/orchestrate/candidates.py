@@ -1,0 +1,136 @@
+"""Candidates: which catalogue assets a suspect may be a copy of, best first.
+
+A suspect is read once and ranked two ways (:func:`triage`): by shape
+distribution against every asset's views, and by votes of local descriptors
+over the catalogue index (:func:`build_index`, kept per catalogue version).
+:func:`candidates` interleaves the two rankings; :func:`planned_recipients`
+counts every recipient the checks of those candidates could accuse, so the
+threshold is corrected for all of them whichever check stops the search.
+"""
+
+from __future__ import annotations
+
+import functools
+import time
+import zipfile
+
+import numpy as np
+
+from ..io.basis_store import find_file, write_file
+from ..io.pointcloud import InputError, read_points, sha256_file
+from ..kernels.descriptor import d2_descriptor, descriptor_distance
+
+__all__ = ["triage", "candidates", "build_index", "load_index", "planned_recipients", "INDEX_FORMAT", "MIN_POINTS"]
+
+
+@functools.lru_cache(maxsize=2)
+def load_index(path):
+    from ..features import FeatureIndex
+
+    return FeatureIndex.load(path)
+
+
+MIN_POINTS = 16     # under this a suspect's shape and marks cannot be measured: failed, never ranked
+
+
+def triage(suspect_path, descriptors, index_path):
+    """Read a suspect, hash it, rank every catalogue asset two ways.
+
+    ``ranking``: by shape distribution (D2), the suspect's views (it whole,
+    without outliers, each separate object) against each asset's (whole,
+    cut as a crop cuts it, and without outliers), right for whole copies,
+    scenes, outliers and crops; ``index_ranking``: by votes of local descriptors (FPFH) over the
+    catalogue index, right for parts of an asset and assets inside a scene.
+    """
+    t0 = time.perf_counter()
+    points = read_points(suspect_path).points
+    if len(points) < MIN_POINTS:
+        raise InputError(f"{suspect_path}: {len(points)} point(s): too few to hold a watermark (at least {MIN_POINTS})")
+    names = list(descriptors)
+    shaped, index_ranking = {}, []
+    if index_path:
+        index = load_index(index_path)
+        shaped = dict(zip(index.keys, index.shape_distances(points)))
+        index_ranking = [k for k, _ in index.rank(points, top_k=len(names))]
+    # assets the index lacks (unreadable when it was built) keep the catalogue's whole-asset D2
+    missing = [k for k in names if k not in shaped]
+    if missing:
+        whole = np.atleast_1d(descriptor_distance(d2_descriptor(points - points.mean(axis=0)),
+                                                  np.array([descriptors[k] for k in missing])))
+        shaped.update(zip(missing, whole))
+    dist = np.array([shaped[k] for k in names])
+    order = np.argsort(dist, kind="stable")
+    return {"path": str(suspect_path), "sha256": sha256_file(suspect_path), "n_points": len(points),
+            "ranking": [names[i] for i in order], "distances": [float(dist[i]) for i in order],
+            "index_ranking": index_ranking, "seconds": time.perf_counter() - t0}
+
+
+def candidates(info, view, top_k, margin=1.6):
+    """Candidates among the assets in view, alternating between the rankings (best of each first).
+
+    The top-K of each ranking, and also, up to 2K from the shape ranking,
+    the assets whose shape distance is within ``margin`` times the nearest
+    in view (near-identical assets tie there).
+    """
+    by_votes = [a for a in info["index_ranking"] if a in view][:top_k]
+    shaped = [(a, d) for a, d in zip(info["ranking"], info["distances"]) if a in view]
+    by_shape = [a for i, (a, d) in enumerate(shaped)
+                if i < top_k or (i < 2 * top_k and d <= margin * shaped[0][1])]
+    pick = [a for pair in zip(by_shape, by_votes) for a in pair]
+    pick += by_shape[len(by_votes):] + by_votes[len(by_shape):]
+    return list(dict.fromkeys(pick))
+
+
+INDEX_FORMAT = "v4"   # v2: inverted-file cells; v3: whole and cut shape views; v4: and the dense view
+
+
+def _loads(index_path):
+    try:
+        load_index(index_path)
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile):
+        return False
+    return True
+
+
+def build_index(out, cat_version, catalogue_paths):
+    """The catalogue's local-descriptor index, built once per catalogue version.
+
+    Kept in ``out`` (a scan's folder, or the basis store for ``detect
+    --ledger``), or in its stand-in when ``out`` cannot be written.
+    """
+    from ..features import build_index as build
+
+    name = f"state/index-{INDEX_FORMAT}-{cat_version}.npz"
+    found = [p for p in find_file(out, name) if _loads(p)]      # a damaged one is rebuilt
+    if found or not catalogue_paths:
+        return str(found[0]) if found else None
+    clouds, missing = {}, []
+    for key, file in sorted(catalogue_paths.items()):
+        try:
+            clouds[key] = read_points(file).points
+        except InputError:
+            missing.append(key)          # its checks fail (and are retried); D2 still ranks it
+    if not clouds:
+        return None
+    index = build(clouds)
+    if missing:                          # not saved: the next scan builds it whole
+        return str(write_file(out, f"state/.index-{cat_version}-partial.npz", index.to_bytes()))
+    return str(write_file(out, name, index.to_bytes()))
+
+
+def planned_recipients(candidate_rows, materials):
+    """Recipients a suspect may be scored against: every (reference, key, generation, recipient) held.
+
+    Parameters
+    ----------
+    candidate_rows : list of list of dict
+        Issued ledger rows of each candidate asset.
+    materials : dict key_id -> bytes
+
+    Returns
+    -------
+    int
+        An upper bound on what :func:`check_asset` scores for these candidates.
+    """
+    return sum(len({(r["reference_key"], r["key_id"], r["generation_id"], r["recipient"])
+                    for r in rows if r["key_id"] in materials}) for rows in candidate_rows)
