@@ -142,7 +142,7 @@ def _triangles(tokens, f, defined, state):
     offsets = np.cumsum(m) - m
     refs = np.arange(int(m.sum())) + np.repeat(tokens.first[f] + 1 - offsets, m)
     words = gather(tokens.words, refs)
-    k = _indices(words)
+    k = _indices(words, b"/" in tokens.data)
     face = np.repeat(np.arange(len(f)), m)
     before = np.repeat(defined, m)
     index = np.where(k > 0, k - 1, before + k)
@@ -167,9 +167,9 @@ def _triangles(tokens, f, defined, state):
 _NOT_AN_INDEX = np.iinfo(np.int64).min          # marks a face reference that is not an integer
 
 
-def _indices(words):
+def _indices(words, slashes=True):
     """(r,) int64 vertex numbers of face references ``v``, ``v/vt``, ``v//vn``, ``v/vt/vn``."""
-    heads = [w.split(b"/", 1)[0] for w in words] if b"/" in b" ".join(words) else words
+    heads = [w.split(b"/", 1)[0] for w in words] if slashes else words
     try:
         return np.fromiter(map(int, heads), dtype=np.int64, count=len(heads))
     except (ValueError, OverflowError):

@@ -367,12 +367,13 @@ def _check_records(tokens, lines, name, props, k0, n_vertices):
     first = tokens.first[lines]
     end = first + tokens.count[lines]
     cursor, found = first.copy(), []                  # found: (record, property order, message)
+    signs = any(c in tokens.data for c in (b"+", b"-", b"_"))
     for order, (prop, kind, _) in enumerate(props):
         if kind != "list":
             cursor = cursor + 1
             continue
         inside = cursor < end
-        lengths = _lengths(gather(tokens.words, np.minimum(cursor, end - 1)))
+        lengths = _lengths(gather(tokens.words, np.minimum(cursor, end - 1)), signs)
         bad = ~inside | (lengths < 0)
         if bad.any():
             r = int(np.argmax(bad))
@@ -395,12 +396,16 @@ def _check_records(tokens, lines, name, props, k0, n_vertices):
 _LONGEST = 1 << 40          # a list length beyond any line (the count check then refuses it)
 
 
-def _lengths(words):
-    """(r,) int64 list lengths; -1 where a word is not a plain decimal number."""
-    if b"".join(words).isdigit():
+def _lengths(words, signs=True):
+    """(r,) int64 list lengths; -1 where a word is not a plain decimal number.
+
+    Without ``+``, ``-`` or ``_`` in the block (``signs`` false), ``int``
+    accepts exactly the plain decimal numbers, so it decides in C.
+    """
+    if not signs:
         try:
             return np.minimum(np.fromiter(map(int, words), dtype=np.int64, count=len(words)), _LONGEST)
-        except OverflowError:
+        except (ValueError, OverflowError):
             pass
     return np.fromiter((min(int(w), _LONGEST) if w.isdigit() else -1 for w in words), dtype=np.int64,
                        count=len(words))

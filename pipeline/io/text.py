@@ -47,7 +47,7 @@ _WORD = re.compile(r"[A-Za-z0-9_.:\-]+")
 _NUMERIC = re.compile(r"[-+0-9.eE_ ]+|[-+]?(nan|inf|infinity)", re.IGNORECASE)
 _PACKED = {b"\x1f\x8b": "gzip", b"PK\x03\x04": "zip", b"\x28\xb5\x2f\xfd": "zstd", b"\xfd7zXZ\x00": "xz",
            b"BZh": "bzip2", b"7z\xbc\xaf\x27\x1c": "7-zip"}
-BLOCK = 1 << 22             # bytes of whole lines tokenised at a time (their tokens cost tens of MB at most)
+BLOCK = 1 << 20             # bytes of whole lines tokenised at a time (their tokens cost tens of MB at most)
 KEEP = 1 << 25              # bytes of parsed arrays the checking pass keeps; beyond, the file is parsed again
 _IS_SPACE = np.zeros(256, dtype=bool)
 _IS_SPACE[list(b" \t\n\r\x0b\x0c")] = True         # what bytes.split() splits at
@@ -317,6 +317,8 @@ class Tokens:
         1-based file line number of the block's first line.
     row : int
         0-based index of the block's first line within the body.
+    data : bytes
+        The block itself.
     """
 
     words: list
@@ -326,6 +328,7 @@ class Tokens:
     size: np.ndarray
     line: int = 1
     row: int = 0
+    data: bytes = b""
 
 
 def tokenise(block, line=1, row=0):
@@ -354,7 +357,7 @@ def tokenise(block, line=1, row=0):
     head, size = np.zeros(n_lines, dtype=np.uint8), np.zeros(n_lines, dtype=np.int64)
     has = np.flatnonzero(count)
     head[has], size[has] = a[starts[first[has]]], (ends - starts)[first[has]]
-    return Tokens(block.split(), count, first, head, size, line, row)
+    return Tokens(block.split(), count, first, head, size, line, row, block)
 
 
 def gather(words, idx):
@@ -619,21 +622,26 @@ def read_pts(data):
 
 def _pts_block(tokens, state):
     """Count lines and the point lines each announces, across block ends."""
-    lines, points, p, pending = _data_lines(tokens), [], 0, None
+    lines, runs, p, pending = _data_lines(tokens), [], 0, None
+    words, first, single = tokens.words, tokens.first[lines].tolist(), (tokens.count[lines] == 1).tolist()
     while p < len(lines):
         if not state.left:
-            j = int(lines[p])
-            try:
-                state.left, state.count_line = _count(line_words(tokens, j), tokens.line + j), tokens.line + j
-            except TextFormatError as exc:
-                pending = exc
+            word = words[first[p]]
+            if not (single[p] and word.isdigit()):
+                j = int(lines[p])
+                pending = TextFormatError("", tokens.line + j)
+                try:
+                    _count(line_words(tokens, j), tokens.line + j)
+                except TextFormatError as exc:
+                    pending = exc
                 break
-            p += 1
+            state.left, state.count_line, p = int(word), tokens.line + int(lines[p]), p + 1
             continue
         take = min(state.left, len(lines) - p)
-        points.append(lines[p:p + take])
+        runs.append((p, take))
         state.left, p = state.left - take, p + take
-    taken = np.concatenate(points) if points else np.zeros(0, dtype=np.int64)
+    start, n = (np.asarray(c, dtype=np.int64) for c in zip(*runs)) if runs else (np.zeros(0, np.int64),) * 2
+    taken = lines[np.arange(int(n.sum())) + np.repeat(start - (np.cumsum(n) - n), n)]
     return _point_lines(tokens, taken, state, pending)
 
 
