@@ -24,8 +24,8 @@ import numpy as np
 
 import os
 
-from .text import (MAX_LINE, TextFormatError, coordinates, describe_value, describe_word, read_blocks, rewrite_lines,
-                   split_lines, whole_text)
+from .text import (CHUNK, MAX_LINE, TextFormatError, Window, coordinates, describe_value, describe_word,
+                   non_finite, read_blocks, rewrite_lines, split_lines, whole_text)
 
 __all__ = ["PcdData", "PcdError", "read_pcd", "write_pcd", "pcd_from_points",
            "lzf_compress", "lzf_decompress", "check_head", "MAX_HEADER"]
@@ -90,10 +90,12 @@ def read_pcd(data):
     header, fields, n, encoding = _layout(head, size)
     if encoding == "ascii":
         return _read_ascii(data, header, fields, n)
-    body = memoryview(whole_text(data))[len(header):]
     dtype = _dtype(fields)
-    raw = _binary_body(body, n, dtype) if encoding == "binary" else _compressed_body(body, n, dtype)
-    records = raw if encoding == "binary" else _from_columns(raw, n, dtype)
+    if encoding == "binary":
+        records = _binary_body(data, len(header), n, dtype)
+    else:
+        body = memoryview(whole_text(data))[len(header):]
+        records = _from_columns(_compressed_body(body, n, dtype), n, dtype)
     points = np.column_stack([records[a].astype(np.float64) for a in "xyz"])
     return PcdData(header, fields, encoding, points, records=records)
 
@@ -238,11 +240,32 @@ def _dtype(fields):
                      for u, (_, k, s, c) in zip(_unique_names(fields), fields)])
 
 
-def _binary_body(body, n, dtype):
-    need = n * dtype.itemsize
-    if len(body) != need:
-        raise PcdError(f"POINTS {n} x {dtype.itemsize} bytes = {need} bytes of data, the body has {len(body)}")
-    return np.frombuffer(body, dtype=dtype).copy()
+def _binary_body(source, start, n, dtype):
+    """(n,) records of a binary body, its length checked by :func:`_check_body_size`.
+
+    The coordinates are checked window by window first, so a refused body
+    costs bounded memory; one that passed is read once, into the array.
+    """
+    window, done, bad, first = Window(source, start, min(CHUNK, n * dtype.itemsize)), 0, 0, -1
+    while done < n and window.need(dtype.itemsize):
+        k = min(n - done, (window.hi - window.lo) // dtype.itemsize)
+        count, at = non_finite(np.frombuffer(window.buf, dtype=dtype, count=k, offset=window.lo))
+        first = done + at if count and first < 0 else first
+        bad, done, window.lo = bad + count, done + k, window.lo + k * dtype.itemsize
+    if done != n:
+        raise PcdError(f"truncated: POINTS {n}, the body holds {done} records")
+    if bad:
+        raise PcdError(f"{bad} points have NaN or infinite coordinates (first at index {first})")
+    if not hasattr(source, "readinto"):
+        return np.frombuffer(source, dtype=dtype, count=n, offset=start).copy()
+    records = np.empty(n, dtype=dtype)
+    source.seek(start)
+    view, got = memoryview(records.view(np.uint8)), 0
+    while got < len(view) and (step := source.readinto(view[got:])):
+        got += step
+    if got != len(view) or source.read(1):
+        raise PcdError("the file changed while it was read")
+    return records
 
 
 def _compressed_body(body, n, dtype):

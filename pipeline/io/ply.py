@@ -12,11 +12,13 @@ from __future__ import annotations
 import io
 import os
 import re
+import struct
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from .text import TextFormatError, describe_value, describe_word, gather, read_blocks, whole_text
+from .text import (CHUNK, TextFormatError, Window, describe_value, describe_word, gather, non_finite, read_blocks,
+                   whole_text)
 
 __all__ = ["PlyData", "read_ply", "write_ply", "PlyError", "check_head", "MAX_HEADER"]
 
@@ -76,8 +78,9 @@ def read_ply(data):
     The body must match the header exactly: a vertex count, element count or
     list length that disagrees with the data is an error, never a guess
     (fewer or more records than declared, bytes or lines left over).  An
-    ASCII body is checked block by block before it is kept, so a refused
-    one costs bounded memory.
+    ASCII body is checked block by block, a binary one window by window
+    (finite coordinates included), before anything is kept, so a refused
+    one costs bounded memory; a binary body that passed is then read once.
 
     Parameters
     ----------
@@ -92,18 +95,15 @@ def read_ply(data):
     count, props = elements[0][1], elements[0][2]
     if fmt == "ascii":
         values = _read_ascii_body(data, body_start, count, props, elements[1:], header)
-    body = memoryview(whole_text(data))[body_start:]
-    if fmt == "ascii":
+        body = memoryview(whole_text(data))[body_start:]
         vertices = np.empty(count, dtype=np.dtype([(p, t) for p, _, t in props]))
         for i, (p, _, _) in enumerate(props):
             vertices[p] = values[:, i]
         tail = bytes(body[_line_end(body, count):])
     else:
         dtype = np.dtype([(p, _FORMATS[fmt] + t) for p, _, t in props])
-        need = dtype.itemsize * count
-        vertices = np.frombuffer(body, dtype=dtype, count=count).copy()
-        _check_binary_tail(body[need:], count, dtype.itemsize, elements[1:], _FORMATS[fmt])
-        tail = bytes(body[need:])
+        _check_binary_body(data, body_start, size - body_start, count, dtype, elements[1:], _FORMATS[fmt])
+        vertices, tail = _binary_body(data, body_start, size - body_start, count, dtype)
     return PlyData(vertices, header, fmt, tail, elements)
 
 
@@ -494,135 +494,202 @@ def _is_index(element, prop):
     return element == "face" or prop in _INDEX_NAMES
 
 
-def _check_index_range(idx, name, k, n_vertices):
-    """Refuse indices outside [0, n_vertices); ``k`` is the record (or None to find it in ``idx`` rows)."""
+def _check_index_range(idx, name, first, n_vertices):
+    """Refuse indices outside [0, n_vertices); ``idx`` (r, l) holds records ``first``, ``first + 1``, ..."""
     bad = (idx < 0) | (idx >= n_vertices)
     if bad.any():
         at = np.argwhere(bad)[0]
-        record = k if k is not None else int(at[0])
-        value = int(idx[tuple(at)])
-        raise PlyError(f"{name} {record}: vertex index {value} is outside the {n_vertices} vertices")
+        raise PlyError(f"{name} {first + int(at[0])}: vertex index {int(idx[tuple(at)])} is outside the "
+                       f"{n_vertices} vertices")
 
 
-def _check_binary_tail(tail, n_vertices, vertex_size, elements, endian):
-    """The bytes after the vertices must hold exactly the declared records (no more, no less)."""
-    at = 0
-    for name, count, props in elements:
-        at = _skip_binary_element(tail, at, name, count, props, endian, n_vertices)
-    if at != len(tail):
-        extra = len(tail) - at
-        if not elements and extra % vertex_size == 0:
-            raise PlyError(f"the header declares {n_vertices} vertices, the body holds "
-                           f"{n_vertices + extra // vertex_size}")
+def _check_binary_body(source, start, left, count, vertex, elements, endian):
+    """Check a binary body window by window, before anything is kept; the vertices' dtype is ``vertex``.
+
+    Every value check runs here (finite coordinates, list lengths, vertex
+    indices, truncation, bytes left over), on one reused buffer of
+    :data:`~pipeline.io.text.CHUNK` bytes, so a refused body of any size
+    costs bounded memory.  ``left`` is the body's length in bytes.
+    """
+    w = Window(source, start, min(CHUNK, left))      # a small body: a small buffer
+    bad, first = _check_vertices(w, count, vertex)
+    for name, n, props in elements:
+        _check_element(w, name, n, props, endian, count, left)
+    extra = left - w.consumed
+    if extra:
+        if not elements and extra % vertex.itemsize == 0:
+            raise PlyError(f"the header declares {count} vertices, the body holds "
+                           f"{count + extra // vertex.itemsize}")
         raise PlyError(f"{extra} bytes follow the records the header declares "
-                       f"({n_vertices} vertices{''.join(f', {c} {n}' for n, c, _ in elements)})")
+                       f"({count} vertices{''.join(f', {c} {n}' for n, c, _ in elements)})")
+    if bad:
+        raise PlyError(f"{bad} points have NaN or infinite coordinates (first at index {first})")
 
 
-def _skip_binary_element(tail, at, name, count, props, endian, n_vertices):
-    """Offset just after ``count`` records of an element starting at ``at``; vertex indices checked."""
-    left = len(tail) - at
-    fixed = sum(np.dtype(t).itemsize if kind == "scalar" else np.dtype(t[0]).itemsize
-                for _, kind, t in props)
+def _check_vertices(w, count, dtype):
+    """(count, first index) of the vertices with a coordinate that is not finite; the window moves past them."""
+    size, done, bad, first = dtype.itemsize, 0, 0, -1
+    while done < count:
+        if not w.need(size):
+            raise PlyError(f"truncated: the header declares {count} vertices, {done} follow")
+        k = min(count - done, (w.hi - w.lo) // size)
+        n, at = non_finite(np.frombuffer(w.buf, dtype=dtype, count=k, offset=w.lo))
+        first = done + at if n and first < 0 else first
+        bad, done, w.lo = bad + n, done + k, w.lo + k * size
+    return bad, first
+
+
+def _skip(w, n):
+    """Consume ``n`` bytes; False when the body ends first."""
+    while n:
+        if w.lo == w.hi and not w.fill():
+            return False
+        take = min(n, w.hi - w.lo)
+        w.lo, n = w.lo + take, n - take
+    return True
+
+
+def _check_element(w, name, count, props, endian, n_vertices, left):
+    """Move the window past ``count`` records of an element; list lengths and vertex indices checked."""
+    fixed = sum(np.dtype(t).itemsize if kind == "scalar" else np.dtype(t[0]).itemsize for _, kind, t in props)
     if count and fixed == 0:
         raise PlyError(f"element {describe_word(name)} has no properties")
-    if count * fixed > left:
-        raise PlyError(f"truncated: {count} {name} records need at least {count * fixed} bytes, "
-                       f"{left} remain")
+    remain = left - w.consumed
+    if count * fixed > remain:
+        raise PlyError(f"truncated: {count} {name} records need at least {count * fixed} bytes, {remain} remain")
     if not any(kind == "list" for _, kind, _ in props):
-        return at + count * fixed
-    if count == 0:
-        return at
-    # Fast path: every list as long as in the first record (triangle meshes).
-    layout, first = [], at
-    for prop, kind, t in props:
-        if kind == "scalar":
-            layout.append(np.dtype(endian + t).itemsize)
-            first += layout[-1]
-        else:
-            if first + np.dtype(t[0]).itemsize > len(tail):
-                raise PlyError(f"truncated {name} block")
-            length = int(np.frombuffer(tail, dtype=endian + t[0], count=1, offset=first)[0])
-            if length < 0:
-                raise PlyError(f"{name} 0: negative list length {length}")
-            layout.append((np.dtype(endian + t[0]), length * np.dtype(t[1]).itemsize,
-                           np.dtype(endian + t[1]) if _is_index(name, prop) else None))
-            first += np.dtype(t[0]).itemsize + layout[-1][1]
-    size = first - at
-    if size * count <= left:
-        fields, indices, offset = [], [], 0
-        for k, item in enumerate(layout):
-            if isinstance(item, tuple):
-                fields.append((f"n{k}", item[0], offset))
-                if item[2] is not None:
-                    indices.append((offset + item[0].itemsize, item[1], item[2]))
-                offset += item[0].itemsize + item[1]
-            else:
-                offset += item
-        block = np.frombuffer(tail, dtype=np.uint8, count=size * count, offset=at).reshape(count, size)
-        same = True
-        for (field, dt, off), item in zip(fields, [i for i in layout if isinstance(i, tuple)]):
-            lengths = block[:, off: off + dt.itemsize].copy().view(dt).ravel()
-            same &= bool((lengths.astype(np.int64) * 1 == lengths[0]).all())
-        if same:
-            for off, nbytes, dt in indices:
-                idx = block[:, off: off + nbytes].copy().view(dt)
-                _check_index_range(idx, name, None, n_vertices)
-            return at + size * count
-    return _walk_records(tail, at, name, count, props, endian, n_vertices)
+        _skip(w, count * fixed)
+        return
+    plan = [(np.dtype(t).itemsize, None, 0, None) if kind == "scalar" else
+            (np.dtype(t[0]).itemsize, struct.Struct(endian + _STRUCT[t[0]]), np.dtype(t[1]).itemsize,
+             np.dtype(endian + t[1]) if _is_index(name, prop) else None) for prop, kind, t in props]
+    layout = _first_layout(w, plan, endian, props)
+    k = _check_same_records(w, name, count, layout, n_vertices) if layout else 0
+    if k < count:
+        _walk_records(w, name, k, count, plan, n_vertices)
 
 
 _STRUCT = {"i1": "b", "u1": "B", "i2": "h", "u2": "H", "i4": "i", "u4": "I"}
 _SPAN_ITEMS = 1 << 19        # vertex indices gathered before they are checked at once
+_LONG_SPAN = 1 << 12         # a list at least this long is checked on its own, without a gather
 
 
-def _walk_records(tail, at, name, count, props, endian, n_vertices):
-    """Offset just after ``count`` records of lists of several lengths, read one record at a time.
+def _first_layout(w, plan, endian, props):
+    """The record at the window's start, with every list as long as in it: (size, lengths, indices).
 
-    List lengths come from ``struct`` (no array per record); the vertex
-    indices are checked in batches, each before a later error is raised,
-    so the first bad record is the one named.
+    ``lengths``: [(offset, dtype, length)]; ``indices``: [(offset, bytes, dtype)].
+    None when that record does not fit in half a window or cannot be read (the walk then names why).
     """
-    import struct
-
-    plan = [(np.dtype(t).itemsize, None, 0, None) if kind == "scalar" else
-            (np.dtype(t[0]).itemsize, struct.Struct(endian + _STRUCT[t[0]]), np.dtype(t[1]).itemsize,
-             np.dtype(endian + t[1]) if _is_index(name, prop) else None) for prop, kind, t in props]
-    spans, items, size = {}, 0, len(tail)
-    for k in range(count):
-        for width, length_of, item, index in plan:
-            if length_of is None:
-                at += width
-                continue
-            if at + width > size:
-                _check_spans(tail, spans, name, n_vertices)
-                raise PlyError(f"truncated: {name} {k} of {count} is cut off")
-            length = length_of.unpack_from(tail, at)[0]
-            if length < 0:
-                _check_spans(tail, spans, name, n_vertices)
-                raise PlyError(f"{name} {k}: negative list length {length}")
+    at, lengths, indices, limit = 0, [], [], CHUNK // 2
+    for (width, length_of, item, index), (_, _, t) in zip(plan, props):
+        if length_of is None:
             at += width
-            if index is not None and length and at + length * item <= size:
-                spans.setdefault(index, []).append((k, at, length))
-                items += length
-            at += length * item
-        if at > size:
-            _check_spans(tail, spans, name, n_vertices)
+            continue
+        if at + width > limit or not w.need(at + width):
+            return None
+        length = length_of.unpack_from(w.buf, w.lo + at)[0]
+        if length < 0:
+            return None
+        lengths.append((at, np.dtype(endian + t[0]), length))
+        if index is not None:
+            indices.append((at + width, length * item, index))
+        at += width + length * item
+    return (at, lengths, indices) if at <= limit else None
+
+
+def _check_same_records(w, name, count, layout, n_vertices):
+    """Check records while their lists are as long as the first one's, a window of records at once.
+
+    Returns the number of records passed: ``count``, or the first record
+    that differs (or is cut off), where the walk takes over.
+    """
+    size, lengths, indices = layout
+    k = 0
+    while k < count and w.need(size):
+        m = min(count - k, (w.hi - w.lo) // size)
+        block = np.frombuffer(w.buf, dtype=np.uint8, count=m * size, offset=w.lo).reshape(m, size)
+        same = np.ones(m, dtype=bool)
+        for off, dt, length in lengths:
+            same &= block[:, off: off + dt.itemsize].copy().view(dt).ravel() == length
+        r = m if same.all() else int(np.argmin(same))
+        for off, nbytes, dt in indices:
+            if nbytes:
+                _check_index_range(block[:r, off: off + nbytes].copy().view(dt), name, k, n_vertices)
+        w.lo, k = w.lo + r * size, k + r
+        if r < m:
+            break
+    return k
+
+
+def _walk_records(w, name, k0, count, plan, n_vertices):
+    """Move the window past records ``k0`` to ``count`` of lists of several lengths, one record at a time.
+
+    List lengths come from ``struct`` (no array per record); a list may
+    run across windows.  Vertex indices are checked in batches, each before
+    the window moves and before a later error is raised, so the first bad
+    record is the one named.
+    """
+    buf, spans, items = w.buf, [], 0
+    lo, hi = w.lo, w.hi
+
+    def refill(n, k):
+        nonlocal lo, hi, spans, items
+        w.lo = lo
+        _check_spans(buf, spans, name, n_vertices)
+        spans, items = [], 0
+        if not w.need(n):
             raise PlyError(f"truncated: {name} {k} of {count} is cut off")
+        lo, hi = w.lo, w.hi
+
+    for k in range(k0, count):
+        for width, length_of, item, index in plan:
+            if hi - lo < width:
+                refill(width, k)
+            if length_of is None:
+                lo += width
+                continue
+            length = length_of.unpack_from(buf, lo)[0]
+            lo += width
+            if length < 0:
+                w.lo = lo
+                _check_spans(buf, spans, name, n_vertices)
+                raise PlyError(f"{name} {k}: negative list length {length}")
+            nbytes = length * item
+            while nbytes:
+                take = min(nbytes, (hi - lo) // item * item)
+                if not take:
+                    refill(item, k)
+                    continue
+                if index is not None:
+                    spans.append((k, lo, take // item, index))
+                    items += take // item
+                lo, nbytes = lo + take, nbytes - take
         if items > _SPAN_ITEMS:
-            _check_spans(tail, spans, name, n_vertices)
-            spans, items = {}, 0
-    _check_spans(tail, spans, name, n_vertices)
-    return at
+            _check_spans(buf, spans, name, n_vertices)
+            spans, items = [], 0
+    w.lo = lo
+    _check_spans(buf, spans, name, n_vertices)
 
 
-def _check_spans(tail, spans, name, n_vertices):
-    """Check vertex indices of list spans ``{dtype: [(record, offset, length)]}``; the first bad record named."""
-    found = []
-    for dt, group in spans.items():
+def _check_spans(buf, spans, name, n_vertices):
+    """Check the vertex indices of list spans ``[(record, offset, length, dtype)]`` in ``buf``.
+
+    The first bad record is named.
+    """
+    found, short = [], {}
+    for k, offset, length, dt in spans:
+        if length >= _LONG_SPAN:
+            idx = np.frombuffer(buf, dtype=dt, count=length, offset=offset)
+            bad = (idx < 0) | (idx >= n_vertices)
+            if bad.any():
+                found.append((k, int(idx[int(np.argmax(bad))])))
+        else:
+            short.setdefault(dt, []).append((k, offset, length))
+    for dt, group in short.items():
         record, offset, length = (np.asarray(c, dtype=np.int64) for c in zip(*group))
         n = length * dt.itemsize
         byte = np.arange(int(n.sum())) + np.repeat(offset - (np.cumsum(n) - n), n)
-        idx = np.frombuffer(tail, dtype=np.uint8)[byte].view(dt).astype(np.int64)
+        idx = np.frombuffer(buf, dtype=np.uint8)[byte].view(dt).astype(np.int64)
         bad = (idx < 0) | (idx >= n_vertices)
         if bad.any():
             at = int(np.argmax(bad))
@@ -630,6 +697,25 @@ def _check_spans(tail, spans, name, n_vertices):
     if found:
         k, value = min(found)
         raise PlyError(f"{name} {k}: vertex index {value} is outside the {n_vertices} vertices")
+
+
+def _binary_body(source, start, left, count, dtype):
+    """(vertices, tail bytes) of a binary body that :func:`_check_binary_body` passed: the bytes, read once."""
+    need = count * dtype.itemsize
+    if not hasattr(source, "readinto"):
+        return np.frombuffer(source, dtype=dtype, count=count, offset=start).copy(), bytes(source[start + need:])
+    vertices = np.empty(count, dtype=dtype)
+    source.seek(start)
+    view, got = memoryview(vertices.view(np.uint8)), 0
+    while got < need:
+        n = source.readinto(view[got:])
+        if not n:
+            break
+        got += n
+    tail = source.read(left - need)          # one allocation of the known length (``read()`` joins parts)
+    if got != need or len(tail) != left - need or source.read(1):
+        raise PlyError("the file changed while it was read")
+    return vertices, tail
 
 
 def _write_ascii_vertices(vertices):

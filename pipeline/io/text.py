@@ -37,7 +37,7 @@ __all__ = ["TextFormatError", "TextTable", "read_xyz", "read_pts", "write_text",
            "xyz_from_points", "pts_from_points", "parse_coords", "rewrite_lines",
            "format_coordinate", "split_lines", "excerpt", "describe_value", "describe_word", "check_text",
            "packed_kind", "MAX_LINE", "Tokens", "tokenise", "text_blocks", "read_blocks", "whole_text",
-           "coordinates", "gather", "line_words", "BLOCK"]
+           "coordinates", "gather", "line_words", "BLOCK", "Window", "CHUNK", "non_finite"]
 
 _SEPARATORS = re.compile(rb"(\s+)")
 MAX_LINE = 1 << 20          # bytes; a longer line is not a point line (a binary file, a one-line dump)
@@ -245,6 +245,93 @@ def _reader(source, start):
 def whole_text(source, start=0):
     """The bytes of ``source`` (bytes or a binary file) from byte ``start`` on."""
     return _reader(source, start)(-1) if hasattr(source, "read") else bytes(memoryview(source)[start:])
+
+
+CHUNK = 1 << 25             # bytes of a binary body held at a time by a checking pass
+
+
+class Window:
+    """A binary body one window at a time, through one reused buffer (never a copy of the whole body).
+
+    ``buf[lo:hi]`` holds the body's bytes not yet consumed that have been
+    read; a reader consumes by advancing ``lo`` and calls :meth:`fill` for
+    more.  Files are read with ``readinto`` (no ``mmap``: mapped pages
+    count as resident memory).
+
+    Parameters
+    ----------
+    source : bytes or binary file
+    start : int
+        Byte offset of the body in ``source``.
+    size : int
+        Bytes of the buffer; a record a reader needs whole must be shorter.
+    """
+
+    def __init__(self, source, start, size=CHUNK):
+        if hasattr(source, "readinto"):
+            source.seek(start)
+            self._readinto = source.readinto
+        else:
+            self._readinto = _view_reader(memoryview(source)[start:])
+        self.buf = bytearray(size)
+        self.lo = self.hi = 0
+        self.read = 0               # body bytes read so far (consumed: ``read - (hi - lo)``)
+
+    @property
+    def consumed(self):
+        return self.read - (self.hi - self.lo)
+
+    def fill(self):
+        """Move the unconsumed bytes to the front and read more; False when the body has no more."""
+        keep = self.hi - self.lo
+        if self.lo:
+            self.buf[:keep] = self.buf[self.lo:self.hi]
+        self.lo, self.hi, got = 0, keep, 0
+        view = memoryview(self.buf)
+        while self.hi < len(self.buf):
+            n = self._readinto(view[self.hi:])
+            if not n:
+                break
+            self.hi, got = self.hi + n, got + n
+        view.release()
+        self.read += got
+        return got > 0
+
+    def need(self, n):
+        """Whether ``n`` unconsumed bytes are (or could be made) available."""
+        while self.hi - self.lo < n:
+            if not self.fill():
+                return False
+        return True
+
+
+def _view_reader(view):
+    """``readinto(buffer)`` over a memoryview, as a file's."""
+    at = 0
+
+    def readinto(out):
+        nonlocal at
+        n = min(len(out), len(view) - at)
+        out[:n] = view[at:at + n]
+        at += n
+        return n
+    return readinto
+
+
+def non_finite(records, names=("x", "y", "z")):
+    """(count, first index) of the records whose fields ``names`` are not all finite; first is -1 when none.
+
+    Parameters
+    ----------
+    records : (k,) structured array
+    """
+    with np.errstate(invalid="ignore"):       # a signalling NaN is counted like any NaN
+        ok = np.ones(len(records), dtype=bool)
+        for name in names:
+            if records.dtype[name].kind == "f":
+                ok &= np.isfinite(records[name])
+    bad = np.flatnonzero(~ok)
+    return len(bad), int(bad[0]) if len(bad) else -1
 
 
 def text_blocks(source, start=0, line=1, size=BLOCK):

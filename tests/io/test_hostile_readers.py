@@ -519,3 +519,89 @@ def test_a_binary_mesh_of_mixed_lists_cut_short_is_refused_quickly(tmp_path):
     message, seconds = json.loads(run.stdout)
     assert message == f"{path}: truncated: face 2000000 of 6000000 is cut off", message
     assert seconds < 8, f"{seconds:.1f} s for 2 million records (the per-record reader took about 8)"
+
+
+# -- cause: a large binary PLY or PCD whose defect sits in its very last record costs bounded memory ------
+
+BIG_BINARY_MB = 120           # the whole-file readers peaked at about 3 times this
+
+
+def _big_binary(path, defect):
+    """A binary PLY (float vertices, triangles) or PCD of about :data:`BIG_BINARY_MB` MB, bad in its last record.
+
+    Written as one block of records repeated, the last copy patched: (path, record count).
+    """
+    block, rng = 1 << 16, np.random.default_rng(3)
+    vertex = np.zeros(block, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1")])
+    vertex["x"], vertex["y"], vertex["z"] = rng.uniform(-1, 1, (3, block))
+    face = np.zeros(block, dtype=[("n", "u1"), ("v", "<i4", (3,))])
+    face["n"] = 3
+    per = vertex.itemsize + (face.itemsize if path.suffix == ".ply" else 0)
+    repeats = (BIG_BINARY_MB << 20) // (per * block)
+    n = repeats * block
+    face["v"] = rng.integers(0, n, (block, 3))
+    last_vertex, last_face = vertex.copy(), face.copy()
+    if defect == "nan":
+        last_vertex["z"][-1] = np.nan
+    else:
+        last_face["v"][-1, 2] = n
+    if path.suffix == ".ply":
+        head = _ply(0, declared=n).replace(b"double", b"float").replace(
+            b"end_header",
+            b"property uchar red\nelement face %d\nproperty list uchar int vertex_indices\nend_header" % n)
+        parts = [(vertex, last_vertex), (face, last_face)]
+    else:
+        head = _pcd(n, size="4 4 4 1", body=b"").replace(b"x y z", b"x y z red").replace(b"F F F", b"F F F U") \
+            .replace(b"COUNT 1 1 1", b"COUNT 1 1 1 1")
+        parts = [(vertex, last_vertex)]
+    with open(path, "wb") as f:
+        f.write(head)
+        for records, last in parts:
+            data = records.tobytes()
+            for _ in range(repeats - 1):
+                f.write(data)
+            f.write(last.tobytes())
+    return path, n
+
+
+@pytest.mark.parametrize("name,defect,needle", [
+    ("nan_vertex.ply", "nan", "1 points have NaN or infinite coordinates (first at index {last})"),
+    ("bad_face.ply", "face", "face {last}: vertex index {n} is outside the {n} vertices"),
+    ("nan_point.pcd", "nan", "1 points have NaN or infinite coordinates (first at index {last})"),
+])
+def test_a_large_binary_file_bad_in_its_last_record_is_refused_in_bounded_memory(tmp_path, name, defect, needle):
+    path, n = _big_binary(tmp_path / name, defect)
+    try:
+        message, over = _peak_over_baseline(path, tmp_path)
+    finally:
+        path.unlink()
+    assert message == f"{path}: {needle.format(last=n - 1, n=n)}", message
+    assert over < 100, f"peak {over:.0f} MB over the interpreter's for a {BIG_BINARY_MB} MB file"
+
+
+def _mixed_mesh(n_faces=3000, bad_face=None):
+    """A binary PLY of triangles, quads and 200-gons (lists that outrun a small window); one bad index maybe."""
+    rng = np.random.default_rng(4)
+    faces = [list(rng.integers(0, 50, (3, 4, 200)[k % 3])) for k in range(n_faces)]
+    if bad_face is not None:
+        faces[bad_face][-1] = 50
+    return _ply(50, faces=faces)
+
+
+@pytest.mark.parametrize("window", [64, 1000, 4096])
+def test_binary_bodies_read_the_same_whatever_the_window(tmp_path, monkeypatch, window):
+    from pipeline.io import pcd as pcd_io, ply as ply_io
+
+    mesh, cloud = _write(tmp_path, "mesh.ply", _mixed_mesh()), _write(tmp_path, "cloud.pcd", _pcd(500))
+    bad = _write(tmp_path, "bad.ply", _mixed_mesh(bad_face=2999))
+    whole = [read_points(mesh).native, read_points(cloud).native]
+    with pytest.raises(InputError) as refused:
+        read_points(bad)
+    monkeypatch.setattr(ply_io, "CHUNK", window)
+    monkeypatch.setattr(pcd_io, "CHUNK", window)
+    ply, pcd = read_points(mesh).native, read_points(cloud).native
+    assert np.array_equal(ply.vertices, whole[0].vertices) and ply.tail == whole[0].tail
+    assert np.array_equal(pcd.records, whole[1].records)
+    with pytest.raises(InputError) as windowed:
+        read_points(bad)
+    assert str(windowed.value) == str(refused.value) == f"{bad}: face 2999: vertex index 50 is outside the 50 vertices"
