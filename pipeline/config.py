@@ -533,8 +533,8 @@ def _check_values(cfg, source):
         if count > _MAX_VALUES:
             raise ConfigError(f"{source}: more than {_MAX_VALUES} values (YAML aliases expanding?)")
         key = ".".join(str(p) for p in where) or "(top level)"
-        shown = "the value" if where[:1] == ("key",) else repr(node)    # a secret may be pasted under key
         if isinstance(node, float) and not math.isfinite(node):
+            shown = "the value" if where[:1] == ("key",) else repr(node)    # a secret may be pasted under key
             raise ConfigError(f"{source}: {key}: {shown} is not a finite number")
         if isinstance(node, str) and "\0" in node:
             raise ConfigError(f"{source}: {key}: the text holds a NUL byte (no path or name may)")

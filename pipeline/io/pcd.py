@@ -138,6 +138,11 @@ def _layout(data, size):
     return header, fields, n, encoding
 
 
+# a binary_compressed body is decoded whole (LZF, in Python): above this many unpacked bytes it is
+# refused before any read, so a refused file of any size costs bounded memory (about 4x this)
+MAX_COMPRESSED_BODY = 64 * 2**20
+
+
 def _check_body_size(encoding, fields, n, prefix, held):
     """The body's length (``held`` bytes, starting with ``prefix``) against what the header declares."""
     itemsize = _dtype(fields).itemsize
@@ -155,6 +160,10 @@ def _check_body_size(encoding, fields, n, prefix, held):
         if unpacked != n * itemsize:
             raise PcdError(f"the compressed block unpacks to {unpacked} bytes, "
                            f"POINTS {n} x {itemsize} bytes = {n * itemsize}")
+        if unpacked > MAX_COMPRESSED_BODY:
+            raise PcdError(f"binary_compressed bodies are read up to {MAX_COMPRESSED_BODY >> 20} MiB unpacked, "
+                           f"this one unpacks to {unpacked >> 20} MiB: re-save it as binary (e.g. pcl_convert_pcd_"
+                           f"ascii_binary in.pcd out.pcd 1)")
 
 
 def _split_header(data):

@@ -221,6 +221,20 @@ def test_declared_counts_beyond_the_file_are_refused_before_allocating(tmp_path)
     _assert_refused(COUNT_CASES, tmp_path)
 
 
+def _compressed_pcd_of(n, file_bytes):
+    """A binary_compressed PCD of ``n`` points whose compressed block fills a sparse file of ``file_bytes``."""
+    head = _pcd(n, "binary_compressed", body=b"")
+    return head + struct.pack("<II", file_bytes - len(head) - 8, 12 * n), file_bytes
+
+
+def test_a_compressed_pcd_too_large_to_decode_whole_is_refused_before_reading(tmp_path):
+    # LZF is decoded whole: a body unpacking past the bound would cost several times its size
+    _assert_refused({"pcd_compressed_2gb.pcd": (_compressed_pcd_of(170_000_000, 2 * GB),
+                                                "binary_compressed bodies are read up to 64 MiB unpacked"),
+                     "pcd_compressed_100mb.pcd": (_compressed_pcd_of(9_000_000, 100 * 2**20),
+                                                  "re-save it as binary")}, tmp_path)
+
+
 # -- cause: an ASCII PLY body is parsed in C and checked as it goes, never as per-token lists -------
 
 def _big_ascii_ply(n_vertices=800_000, n_faces=800_000, declared_faces=None, bad_last=False):
