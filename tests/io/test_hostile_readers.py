@@ -98,7 +98,7 @@ def _write(tmp_path, name, data):
 def _read_in_child(paths):
     """Read ``paths`` in a fresh interpreter: ({path: message or 'ok'}, peak resident MB)."""
     code = textwrap.dedent("""
-        import json, resource, sys
+        import json, sys
         from pipeline.io.pointcloud import InputError, read_points
         out = {}
         for p in sys.argv[1:]:
@@ -107,7 +107,9 @@ def _read_in_child(paths):
                 out[p] = "ok"
             except InputError as exc:
                 out[p] = str(exc)
-        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        # VmHWM: this process's own peak since exec (ru_maxrss would also count the parent's
+        # resident size at the fork, which is the test runner's)
+        peak = next(int(l.split()[1]) for l in open("/proc/self/status") if l.startswith("VmHWM")) / 1024
         print(json.dumps({"messages": out, "peak_mb": peak}))
     """)
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
