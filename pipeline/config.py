@@ -389,7 +389,8 @@ def load_config(path=None, overrides=()):
     if path is not None:
         path = Path(path)
         if not path.is_file():
-            raise ConfigError(f"{path}: config file not found")
+            raise ConfigError(f"{path}: " + ("not a regular file (a folder, FIFO or device)" if path.exists()
+                                              else "config file not found"))
         if path.stat().st_size > MAX_CONFIG_BYTES:
             raise ConfigError(f"{path}: {path.stat().st_size} bytes; a config is at most {MAX_CONFIG_BYTES} "
                               f"bytes (is this a config file?)")

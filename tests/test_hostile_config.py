@@ -325,19 +325,36 @@ def test_chain_sizes_are_bounded():
         chain_size([("outliers", 50.0), ("outliers", 50.0)], 1000)
 
 
-def test_a_huge_resample_is_refused_in_little_memory(tmp_path):
-    src = _ply(tmp_path / "m.ply", sphere_patch(300))
-    # the child reports its own peak since exec (VmHWM): ru_maxrss from wait4 would also count the
-    # test runner's resident size at the fork
+def _cli_with_peak(*argv):
+    """Run the CLI in a child: (exit status, stderr, the child's own peak resident kB since exec).
+
+    VmHWM, not wait4's ru_maxrss: that also counts the test runner's resident size at the fork.
+    """
     code = ("import sys\nfrom pipeline.cli import main\ntry:\n    code = main(sys.argv[1:])\nfinally:\n"
             "    peak = next(l for l in open('/proc/self/status') if l.startswith('VmHWM')).split()[1]\n"
             "    print(peak, file=sys.stdout, flush=True)\nsys.exit(code)\n")
-    proc = subprocess.run([sys.executable, "-c", code, "attack", str(src), str(tmp_path / "a.ply"),
-                           "--attack", "resample:1000000000"], capture_output=True, text=True,
+    proc = subprocess.run([sys.executable, "-c", code, *map(str, argv)], capture_output=True, text=True,
                           env={**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}, timeout=300)
-    assert proc.returncode == 2 and "resample" in proc.stderr and len(proc.stderr.splitlines()) == 1, proc.stderr
-    assert int(proc.stdout.split()[-1]) < 500 * 1024          # kB
+    return proc.returncode, proc.stderr, int(proc.stdout.split()[-1])
+
+
+def test_a_huge_resample_is_refused_in_little_memory(tmp_path):
+    src = _ply(tmp_path / "m.ply", sphere_patch(300))
+    code, err, peak = _cli_with_peak("attack", src, tmp_path / "a.ply", "--attack", "resample:1000000000")
+    assert code == 2 and "resample" in err and len(err.splitlines()) == 1, err
+    assert peak < 500 * 1024          # kB
     assert not (tmp_path / "a.ply").exists()
+
+
+@pytest.mark.parametrize("depth", [8, 12])
+def test_a_yaml_alias_bomb_is_refused_quickly_in_little_memory(tmp_path, depth):
+    # 700 bytes that expand to 9^depth values: the checks never render or copy the tree
+    text = "x0: &x0 [lol,lol,lol,lol,lol,lol,lol,lol,lol]\n" + "".join(
+        f"x{i}: &x{i} [" + ",".join([f"*x{i - 1}"] * 9) + "]\n" for i in range(1, depth + 1))
+    (tmp_path / "bomb.yaml").write_text(text)
+    code, err, peak = _cli_with_peak("validate", tmp_path / "bomb.yaml")
+    assert code == 2 and "more than" in err and len(err.splitlines()) == 1, err
+    assert peak < 500 * 1024
 
 
 # -- 8. a copy the file's precision leaves unmarked ---------------------------------------------

@@ -8,7 +8,6 @@ a catalogue file are relative to that file.
 from __future__ import annotations
 
 import csv
-import glob
 import os
 import stat
 from dataclasses import dataclass, field
@@ -83,9 +82,11 @@ def discover_assets(source, *, default_recipients=()):
     elif path.is_file() and path.suffix.lower() in FORMATS:
         assets = [Asset(path.stem, path, tuple(default_recipients))]     # one file: a catalogue of one
     elif any(ch in source_text for ch in "*?["):
-        files = [Path(p) for p in glob.glob(source_text, recursive=True)
-                 if Path(p).suffix.lower() in FORMATS]
-        assets = [Asset(p.stem, p, tuple(default_recipients)) for p in files]
+        root, files = _glob(source_text)
+        inside = os.path.realpath(root)
+        assets = [Asset(p.stem, p, tuple(default_recipients), None if _within(p, inside) else f"{p}: {LEAVES_FOLDER}")
+                  for p in files if p.suffix.lower() in FORMATS and not p.name.startswith(".")
+                  and (p.is_file() or p.is_symlink())]
     elif not path.exists() and not path.is_symlink():
         raise InputError(f"{source_text}: no such catalogue file or folder")
     else:
@@ -95,6 +96,15 @@ def discover_assets(source, *, default_recipients=()):
     if dupes:
         raise InputError(f"{source_text}: asset keys are not unique: {dupes[:5]}")
     return sorted(assets, key=lambda a: a.key)
+
+
+def _glob(pattern):
+    """(the folder above the first wildcard, the paths matched): pathlib's ``**`` follows no link to a
+    folder (glob.glob's does, so a link loop or /proc/*/root never ends)."""
+    parts = Path(pattern).parts
+    magic = next(i for i, part in enumerate(parts) if any(ch in part for ch in "*?["))
+    root = Path(*parts[:magic]) if magic else Path(".")
+    return root, (sorted(root.glob(str(Path(*parts[magic:])))) if root.is_dir() else [])
 
 
 def _within(path, inside):
@@ -208,8 +218,20 @@ def write_catalogue(rows, out):
 
 
 def read_catalogue(path):
-    """Catalogue rows with descriptors as arrays."""
-    rows = pq.read_table(path).to_pylist()
+    """Catalogue rows with descriptors as arrays.
+
+    Raises
+    ------
+    InputError
+        The file is missing or not a catalogue written by ``pointmark catalog build``.
+    """
+    if not Path(path).is_file():
+        raise InputError(f"{path}: no such catalogue file (write one with pointmark catalog build)")
+    try:
+        rows = pq.read_table(path, schema=CATALOG_SCHEMA).to_pylist()
+    except (OSError, pa.ArrowException, ValueError, TypeError) as exc:
+        raise InputError(f"{path}: not a catalogue file written by pointmark catalog build "
+                         f"({type(exc).__name__})") from None
     for row in rows:
         if row.get("descriptor") is not None:
             row["descriptor"] = np.asarray(row["descriptor"])
@@ -248,11 +270,7 @@ def list_suspects(source):
             dirs[:] = [d for d in dirs if not d.startswith(".")]
             found += [Path(folder) / n for n in files + [d for d in dirs if os.path.islink(Path(folder) / d)]]
     elif any(ch in text for ch in "*?["):
-        parts = Path(text).parts
-        magic = next(i for i, part in enumerate(parts) if any(ch in part for ch in "*?["))
-        root = Path(*parts[:magic]) if magic else Path(".")      # the folder above the first wildcard
-        # pathlib's "**" follows no link to a folder (glob.glob's does: a link loop never ends)
-        found = list(root.glob(str(Path(*parts[magic:])))) if root.is_dir() else []
+        root, found = _glob(text)
     elif path.suffix.lower() in FORMATS and (path.exists() or path.is_symlink()):
         root, found = path.parent, [path]
     else:

@@ -33,6 +33,7 @@ import io
 import json
 import os
 import re
+import stat
 import sys
 import uuid
 from datetime import datetime, timezone
@@ -336,6 +337,9 @@ def _asset_tag(key):
 
 def _read_part(part):
     """The rows of one part file, checked to be ledger rows."""
+    if part.is_symlink() or not stat.S_ISREG(os.lstat(part).st_mode):
+        raise LedgerError(f"{part}: a link or not a regular file: a ledger part is a file of its own "
+                          f"(a foreign part?); move it out to continue")
     try:
         rows = pq.read_table(part, schema=LEDGER_SCHEMA).to_pylist()
     except (OSError, pa.ArrowException, ValueError, TypeError) as exc:

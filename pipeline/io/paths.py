@@ -14,7 +14,7 @@ from pathlib import Path
 
 from .pointcloud import InputError
 
-__all__ = ["source_folders", "check_apart", "check_output_folder", "copy_path", "pending_path"]
+__all__ = ["source_folders", "check_apart", "check_disjoint", "check_output_folder", "copy_path", "pending_path"]
 
 # a file name of more than this many bytes, or a path of more than this many, is refused
 NAME_MAX = 255
@@ -115,6 +115,25 @@ def check_apart(outputs, inputs, asset_paths=()):
             if _inside(_resolved(asset), out):
                 raise InputError(f"config: {key}: {out} contains the catalogue asset {asset}; an output "
                                  f"could replace an original: choose a folder outside the catalogue")
+
+
+def check_disjoint(first, others):
+    """Refuse an output folder that is, holds or lies inside another output of the job.
+
+    Parameters
+    ----------
+    first : (str, path)
+        (config key, folder): issued copies, or a scan's results.
+    others : list of (str, path)
+        The job's other outputs (the ledger, the basis store, ...).
+    """
+    key, folder = first
+    mine = _resolved(folder)
+    for other_key, other in others:
+        theirs = _resolved(other)
+        if _inside(mine, theirs) or _inside(theirs, mine):
+            raise InputError(f"config: {key}: {mine} overlaps {other_key} ({theirs}); keep each output in a "
+                             f"folder of its own")
 
 
 def copy_path(out_dir, recipient, asset_key, generation, suffix):

@@ -66,13 +66,13 @@ def _read_key_file(secret_file):
     """The key file's bytes, trailing newline stripped; no message names the path."""
     path = Path(secret_file)
     try:
-        is_file = path.is_file()
+        exists, is_file = path.exists(), path.is_file()
     except (OSError, ValueError):
-        is_file = False
+        exists = is_file = False
     if not is_file:
         # the value may be a secret pasted in the wrong place: never echo it
-        raise SecretError("secret file: no such file (the value given is not shown, "
-                          "in case it is the secret itself)")
+        what = "not a regular file (a folder, FIFO or device)" if exists else "no such file"
+        raise SecretError(f"secret file: {what} (the value given is not shown, in case it is the secret itself)")
     try:
         with open(path, "rb") as f:
             data = f.read(MAX_SECRET_BYTES + 1)

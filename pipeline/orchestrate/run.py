@@ -37,7 +37,7 @@ from ..config import ConfigError, watermark_params
 from ..io.basis_store import BasisStore
 from ..io.catalog import check_recipient, discover_assets
 from ..io.ledger import Ledger
-from ..io.paths import check_apart, copy_path, pending_path, source_folders
+from ..io.paths import check_apart, check_disjoint, copy_path, pending_path, source_folders
 from ..io.pointcloud import InputError, sha256_file
 from ..io.secrets import without_secret_env
 from ..kernels import keys
@@ -158,6 +158,7 @@ def plan_job(cfg, secret, *, force=False, shard=None, create=True):
                 [("catalogue folder", f) for f in source_folders(cfg["catalog"]["source"],
                                                                  [a.path for a in all_assets])],
                 [a.path for a in all_assets])
+    check_disjoint(("output.dir", out["dir"]), [("output.manifests", out["manifests"]), ("output.bases", store)])
     ledger = Ledger(out["manifests"])
     version = ledger.version()
     salt = ledger.salt()
@@ -169,6 +170,7 @@ def plan_job(cfg, secret, *, force=False, shard=None, create=True):
     job.replan = lambda: plan_job(cfg, secret, force=force, shard=shard)
     assets = all_assets[shard[0]::shard[1]] if shard is not None else all_assets
     recorded = ledger.rows(status=None)
+    _check_deployment(recorded, salt, key_id, fingerprint, ledger)
     issued = {}
     for row in recorded:
         if row["status"] == "ok":
@@ -178,6 +180,22 @@ def plan_job(cfg, secret, *, force=False, shard=None, create=True):
         job.assets.append(_plan_asset(job, asset, recipients, issued.get(asset.key, []), Path(out["dir"]), force))
     _check_copy_paths(job, recorded)
     return job
+
+
+def _check_deployment(recorded, salt, key_id, fingerprint, ledger):
+    """Refuse a salt no row was issued under, or a secret that is not the one the key id was issued under.
+
+    Either would silently start a new generation of every asset: a
+    ``deployment.json`` restored from another ledger, or a wrong key file.
+    """
+    if recorded and salt not in {r["key_salt"] for r in recorded}:
+        raise InputError(f"{ledger.folder / 'deployment.json'}: its salt is not the one the ledger's rows were "
+                         f"issued under (restored from another ledger?); restore this ledger's own")
+    prints = {r["key_fingerprint"] for r in recorded if r["key_id"] == key_id and r["key_salt"] == salt}
+    if prints and fingerprint not in prints:
+        raise InputError(f"config: key.id: {key_id} was issued under another secret (fingerprint "
+                         f"{', '.join(sorted(prints))}, this one gives {fingerprint}): a wrong secret or key file? "
+                         f"A new secret needs a new key id")
 
 
 def _plan_asset(job, asset, recipients, rows, out_dir, force):

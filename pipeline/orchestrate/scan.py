@@ -72,7 +72,7 @@ from ..io.catalog import list_suspects, read_catalogue
 from ..io.evidence import plain_text, render_match, write_summary
 from ..io.ledger import Ledger
 from ..io.manifest import read_rows, write_rows
-from ..io.paths import check_apart, source_folders
+from ..io.paths import check_apart, check_disjoint, source_folders
 from ..io.pointcloud import InputError, atomic_write_bytes, read_points, sha256_file
 from ..kernels.descriptor import d2_descriptor
 from .attribute import check_asset, decide, held_rows, original_files, unheld_copies, unheld_summary
@@ -233,6 +233,8 @@ def run_scan(cfg, secret, *, force=False):
                 catalogue_files)
     detect_params = config_mod.detect_params(cfg)
     store = ref["store"]
+    check_disjoint(("scan.out", out), [("the ledger", ledger.folder), ("the basis store", store),
+                                      ("output.dir", cfg["output"]["dir"])])
     out.mkdir(parents=True, exist_ok=True)
     state = _save_state(out, versions, [p.name for p in ledger.parts()], ref["assets"])
     index_path, descriptors = _ranked_by(ref, out)
@@ -374,11 +376,11 @@ def _sha_or_none(path):
 def _already(prev, versions, keys_held):
     """True when a suspect's last result was against these ledger and catalogue versions.
 
-    A result that left copies unchecked (keys not held) is redone when the
-    secret opens other keys than then.
+    A result that left copies unchecked (keys not held, or originals no file
+    held) is always redone: the key or the original may be back.
     """
     return (prev is not None and (prev["ledger_version"], prev["catalogue_version"]) == versions
-            and (not prev.get("n_unchecked") or prev.get("keys_held") == keys_held))
+            and not prev.get("n_unchecked"))
 
 
 def _submit_next(client, info, materials, store, detect_params, waiting, pending):
@@ -529,8 +531,13 @@ def _previous(out):
 
 
 def _scope(issued, prev, state, out):
-    """Issued rows a suspect must be checked against: all, or those added (or opened) since its last scan."""
-    if prev is None:
+    """Issued rows a suspect must be checked against: all, or those added (or opened) since its last scan.
+
+    A last scan that left copies unchecked (keys not held, originals no file
+    held) saw only part of what it should have: the suspect is checked
+    against everything again.
+    """
+    if prev is None or prev.get("n_unchecked"):
         return issued
     folder = Path(out) / "state"
     try:

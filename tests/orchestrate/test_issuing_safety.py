@@ -71,7 +71,8 @@ def _check_ledger_against_files(manifests, marked):
 @pytest.mark.parametrize("case", ["dir is the catalogue", "dir holds the catalogue", "dir inside the catalogue",
                                   "manifests inside the catalogue", "bases inside the catalogue",
                                   "dir is a file", "bases is a file", "dir name too long",
-                                  "recipient folder is an asset folder"])
+                                  "recipient folder is an asset folder", "dir is the ledger",
+                                  "dir inside the ledger", "dir holds the basis store"])
 def test_outputs_that_touch_the_catalogue_are_refused_before_anything_is_written(tmp_path, case):
     src = make_catalogue(tmp_path / "assets", n_assets=2)
     (tmp_path / "a-file").write_text("not a folder\n")
@@ -83,7 +84,10 @@ def test_outputs_that_touch_the_catalogue_are_refused_before_anything_is_written
               "dir is a file": {"dir": tmp_path / "a-file" / "marked"},
               "bases is a file": {"bases": tmp_path / "a-file"},
               "dir name too long": {"dir": tmp_path / ("x" * 300)},
-              "recipient folder is an asset folder": {"dir": "."}}[case]
+              "recipient folder is an asset folder": {"dir": "."},
+              "dir is the ledger": {"dir": tmp_path / "out" / "l", "manifests": tmp_path / "out" / "l"},
+              "dir inside the ledger": {"dir": tmp_path / "out" / "manifests" / "bases"},
+              "dir holds the basis store": {"bases": tmp_path / "out" / "marked" / "store"}}[case]
     cfg = _config(tmp_path, src, **output)
     before = _tree(tmp_path)
     res = _cli(tmp_path, "run", str(cfg))
@@ -299,3 +303,39 @@ def test_rows_carry_a_mac_and_a_foreign_or_altered_part_is_refused_by_name(tmp_p
         ledger.rows()
     res = _cli(tmp_path, "run", str(cfg))
     assert res.returncode == 2 and str(bad) in res.stderr and len(res.stderr.strip().splitlines()) == 1
+    bad.unlink()
+    other = tmp_path / "elsewhere.parquet"                     # a part of another ledger, linked in
+    other.write_bytes(ledger.parts()[0].read_bytes())
+    (ledger.copies / "part-99999999T000000-link.parquet").symlink_to(other)
+    with pytest.raises(LedgerError, match="a link or not a regular file"):
+        ledger.rows()
+
+
+# -- a secret or salt other than the ledger's never starts a generation silently ----------------------
+
+@pytest.mark.parametrize("case", ["another secret under the key id", "another ledger's salt"])
+def test_a_wrong_secret_or_salt_is_refused_not_a_new_generation(tmp_path, case):
+    import json
+
+    src = make_catalogue(tmp_path / "assets", n_assets=1)
+    cfg = write_config(tmp_path, src)
+    assert _run_ok(cfg)["ok"] == 1
+    if case == "another secret under the key id":
+        (tmp_path / "secret.key").write_text("a different master secret, 41 bytes long\n")
+    else:
+        (tmp_path / "out" / "manifests" / "deployment.json").write_text(json.dumps({"salt": "0" * 32}))
+    parts = Ledger(tmp_path / "out" / "manifests").parts()
+    res = _cli(tmp_path, "run", str(cfg), "--set", "beta=0.004")
+    assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1, res.stderr
+    assert ("another secret" in res.stderr) == (case == "another secret under the key id")
+    assert Ledger(tmp_path / "out" / "manifests").parts() == parts
+
+
+def test_a_glob_catalogue_never_reads_through_a_link_out_of_its_folder(tmp_path):
+    src = make_catalogue(tmp_path / "assets", n_assets=1)
+    (src / "key.pts").symlink_to(tmp_path / "secret.key")
+    cfg = write_config(tmp_path, f"{src}/**/*")
+    assert _run_ok(cfg)["ok"] == 1        # the real asset; the link is a failed row, never opened
+    failed = Ledger(tmp_path / "out" / "manifests").rows(status="failed")
+    assert {r["asset_key"] for r in failed} == {"key"} and len(failed) == 2       # alice's and bob's
+    assert all("leaves the catalogue folder" in r["error"] and str(len(SECRET)) not in r["error"] for r in failed)

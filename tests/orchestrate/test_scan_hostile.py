@@ -168,11 +168,14 @@ def test_a_suspects_folder_that_is_the_scan_output_or_a_glob_matching_nothing_is
 
 
 @pytest.mark.parametrize("where", ["inside the suspects folder", "inside the catalogue folder",
-                                   "holding the catalogue"])
+                                   "holding the catalogue", "the ledger", "inside the ledger",
+                                   "inside the issued copies"])
 def test_a_scan_output_that_touches_its_inputs_is_refused_before_anything_is_written(world, capsys, where):
     (world / "apart").mkdir(exist_ok=True)
     out = {"inside the suspects folder": world / "apart" / "scan", "inside the catalogue folder":
-           world / "assets" / "scan", "holding the catalogue": world}[where]
+           world / "assets" / "scan", "holding the catalogue": world, "the ledger": world / "out" / "manifests",
+           "inside the ledger": world / "out" / "manifests" / "copies" / "scan",
+           "inside the issued copies": world / "out" / "marked" / "scan"}[where]
     cfg_path = _scan(world, "apart")
     cfg = yaml.safe_load(cfg_path.read_text())
     cfg["scan"]["out"] = str(out)
@@ -181,6 +184,16 @@ def test_a_scan_output_that_touches_its_inputs_is_refused_before_anything_is_wri
     code, _, err, _ = _cli(capsys, cfg_path)
     assert code == 2 and len(err.strip().splitlines()) == 1 and "scan.out" in err, err
     assert sorted(p for p in world.rglob("*")) == before
+
+
+@pytest.mark.parametrize("what", ["garbage bytes", "the key file", "a CSV"])
+def test_a_scan_catalogue_that_is_no_catalogue_is_refused_in_one_line(world, capsys, what):
+    bad = world / f"bad-{what.split()[-1]}.parquet"
+    bad.write_bytes({"garbage bytes": b"\x00\x13garbage" * 200, "the key file": (world / "secret.key").read_bytes(),
+                     "a CSV": b"asset_key,path\na,b.ply\n"}[what])
+    code, _, err, _ = _cli(capsys, _scan(world, "badcat", world / "apart", catalogue=bad))
+    assert code == 2 and len(err.strip().splitlines()) == 1 and str(bad) in err, err
+    assert SECRET[:12] not in err and "Traceback" not in err
 
 
 # -- item 1: an original that left the catalogue --------------------------------------------------------------
@@ -206,6 +219,9 @@ def test_a_copy_of_an_original_that_left_the_catalogue_is_still_attributed(world
         assert code == 0 and rows["found.ply"]["verdict"] == "inconclusive", out + err
         assert rows["found.ply"]["n_unchecked"] == 2 and "whose original no file holds" in err
         assert "asset-0" in (world / f"{name}.out" / "report.md").read_text()
+        # the kept copy is back: the next scan checks the suspect again (same ledger and catalogue)
+        code, out, err, rows = _cli(capsys, _scan(world, name, catalogue=world / f"{name}.parquet"))
+        assert code == 1 and rows["found.ply"]["verdict"] == "match" and rows["found.ply"]["recipient"] == "bob", out + err
         return
     assert code == 1, out + err
     assert rows["found.ply"]["verdict"] == "match" and rows["found.ply"]["recipient"] == "bob"
