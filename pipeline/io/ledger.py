@@ -42,7 +42,7 @@ from pathlib import Path
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-__all__ = ["LEDGER_SCHEMA", "LEDGER_VERSION", "MAC_FIELDS", "Ledger", "LedgerError"]
+__all__ = ["LEDGER_SCHEMA", "LEDGER_VERSION", "MAC_FIELDS", "Ledger", "LedgerError", "mac_ok"]
 
 LEDGER_VERSION = 3   # 3: row_mac
 
@@ -329,6 +329,16 @@ def _flock(path):
             yield
         finally:
             fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def mac_ok(mac_key, row):
+    """Whether a row (as :meth:`Ledger.rows` gives it) carries the MAC ``mac_key`` gives it."""
+    import hmac
+
+    from ..kernels.keys import row_mac
+
+    mac = row.get("row_mac")
+    return isinstance(mac, str) and hmac.compare_digest(mac, row_mac(mac_key, row, MAC_FIELDS))
 
 
 def _asset_tag(key):

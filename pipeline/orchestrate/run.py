@@ -36,7 +36,7 @@ from .. import __version__, threads
 from ..config import ConfigError, watermark_params
 from ..io.basis_store import BasisStore
 from ..io.catalog import check_recipient, discover_assets
-from ..io.ledger import Ledger
+from ..io.ledger import Ledger, LedgerError, mac_ok
 from ..io.paths import check_apart, check_disjoint, copy_path, pending_path, source_folders
 from ..io.pointcloud import InputError, sha256_file
 from ..io.secrets import without_secret_env
@@ -171,6 +171,7 @@ def plan_job(cfg, secret, *, force=False, shard=None, create=True):
     assets = all_assets[shard[0]::shard[1]] if shard is not None else all_assets
     recorded = ledger.rows(status=None)
     _check_deployment(recorded, salt, key_id, fingerprint, ledger)
+    _check_macs(recorded, fingerprint, job.mac_key, ledger)
     issued = {}
     for row in recorded:
         if row["status"] == "ok":
@@ -196,6 +197,16 @@ def _check_deployment(recorded, salt, key_id, fingerprint, ledger):
         raise InputError(f"config: key.id: {key_id} was issued under another secret (fingerprint "
                          f"{', '.join(sorted(prints))}, this one gives {fingerprint}): a wrong secret or key file? "
                          f"A new secret needs a new key id")
+
+
+def _check_macs(recorded, fingerprint, mac_key, ledger):
+    """Refuse to plan on rows under this secret's key that carry no valid MAC (added or altered by hand)."""
+    bad = [r for r in recorded if r["key_fingerprint"] == fingerprint and not mac_ok(mac_key, r)]
+    if bad:
+        parts = sorted({r["ledger_part"] for r in bad})
+        raise LedgerError(f"{ledger.copies / parts[0]}: {len(bad)} row(s) under this key without a valid row MAC "
+                          f"(in {len(parts)} part file(s)): added or altered without the secret? Move the part "
+                          f"out; rows written before MACs are sealed with pointmark ledger seal LEDGER")
 
 
 def _plan_asset(job, asset, recipients, rows, out_dir, force):

@@ -339,3 +339,17 @@ def test_a_glob_catalogue_never_reads_through_a_link_out_of_its_folder(tmp_path)
     failed = Ledger(tmp_path / "out" / "manifests").rows(status="failed")
     assert {r["asset_key"] for r in failed} == {"key"} and len(failed) == 2       # alice's and bob's
     assert all("leaves the catalogue folder" in r["error"] and str(len(SECRET)) not in r["error"] for r in failed)
+
+
+def test_a_row_without_a_valid_mac_under_the_runs_key_stops_the_run(tmp_path):
+    # a forged row claiming a copy for carol was counted as "already issued" and never said
+    src = make_catalogue(tmp_path / "assets", n_assets=1)
+    cfg = write_config(tmp_path, src)
+    assert _run_ok(cfg)["ok"] == 1
+    ledger = Ledger(tmp_path / "out" / "manifests")
+    row = ledger.rows()[0]
+    forged = ledger.append([{**row, "recipient": "carol", "output_path": str(tmp_path / "pwned.xyz")}])
+    res = _cli(tmp_path, "run", str(cfg), "--set", "recipients=[alice,bob,carol]")
+    assert res.returncode == 2 and str(forged) in res.stderr and "row MAC" in res.stderr, res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1 and not (tmp_path / "pwned.xyz").exists()
+    assert len(ledger.rows()) == 3
