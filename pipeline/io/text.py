@@ -111,10 +111,15 @@ def excerpt(raw, limit=EXCERPT):
     -------
     str
     """
-    text = bytes(raw).decode("latin-1") if isinstance(raw, (bytes, bytearray, memoryview)) else str(raw)
+    text = _as_text(raw)
     shown = "".join(c if c in _PLAIN else (f"\\x{ord(c):02x}" if ord(c) < 256 else f"\\u{ord(c):04x}")
                     for c in text[:limit])
     return f"'{shown}{'...' if len(text) > limit else ''}'"
+
+
+def _as_text(raw):
+    """Bytes (each byte one character) or any value, as text."""
+    return bytes(raw).decode("latin-1") if isinstance(raw, (bytes, bytearray, memoryview)) else str(raw)
 
 
 def describe_value(raw):
@@ -132,7 +137,7 @@ def describe_value(raw):
     -------
     str
     """
-    text = bytes(raw).decode("latin-1") if isinstance(raw, (bytes, bytearray, memoryview)) else str(raw)
+    text = _as_text(raw)
     if text and len(text) <= EXCERPT and _NUMERIC.fullmatch(text):
         return excerpt(text)
     return f"a {len(text)}-character non-numeric value"
@@ -153,7 +158,7 @@ def describe_word(raw, limit=24):
     -------
     str
     """
-    text = bytes(raw).decode("latin-1") if isinstance(raw, (bytes, bytearray, memoryview)) else str(raw)
+    text = _as_text(raw)
     if text and len(text) <= limit and _WORD.fullmatch(text):
         return f"'{text}'"
     return describe_value(text)
