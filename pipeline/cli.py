@@ -415,13 +415,10 @@ def cmd_catalog_build(args):
 
 def cmd_ledger_seal(args):
     """Seal a ledger's rows that predate row MACs; only the secret's holder can, and vouches for them."""
-    from .kernels.keys import ledger_mac_key
-
     ledger = Ledger(args.ledger)
     if not ledger.parts():
         raise InputError(f"{args.ledger}: no ledger part files here (is it output.manifests of a run?)")
-    secret = load_secret(args.secret_file)
-    n = ledger.seal(ledger_mac_key(secret))
+    n = ledger.seal(load_secret(args.secret_file))
     print(f"{args.ledger}: sealed {n} row(s) that carried no MAC" if n else f"{args.ledger}: every row carries a MAC")
     return 0
 

@@ -91,6 +91,8 @@ def discover_assets(source, *, default_recipients=()):
         raise InputError(f"{source_text}: no such catalogue file or folder")
     else:
         raise InputError(f"{source_text}: not a folder, a glob or a catalogue file (.parquet, .csv)")
+    if not assets and any(ch in source_text for ch in "*?["):
+        raise InputError(f"{source_text}: the glob matches no point-cloud file")
     keys = [a.key for a in assets]
     dupes = sorted({k for k in keys if keys.count(k) > 1})
     if dupes:
@@ -102,6 +104,8 @@ def _glob(pattern):
     """(the folder above the first wildcard, the paths matched): pathlib's ``**`` follows no link to a
     folder (glob.glob's does, so a link loop or /proc/*/root never ends)."""
     parts = Path(pattern).parts
+    if parts and parts[-1] == "**":          # pathlib's "**" alone names folders: every file below them
+        parts = (*parts, "*")
     magic = next(i for i, part in enumerate(parts) if any(ch in part for ch in "*?["))
     root = Path(*parts[:magic]) if magic else Path(".")
     return root, (sorted(root.glob(str(Path(*parts[magic:])))) if root.is_dir() else [])
@@ -266,8 +270,7 @@ def list_suspects(source):
     path = Path(text)
     if path.is_dir():
         root, found = path, []
-        for folder, dirs, files in os.walk(path):                 # links to folders are not followed
-            dirs[:] = [d for d in dirs if not d.startswith(".")]
+        for folder, dirs, files in os.walk(path):    # links to folders are not followed; hidden ones are walked
             found += [Path(folder) / n for n in files + [d for d in dirs if os.path.islink(Path(folder) / d)]]
     elif any(ch in text for ch in "*?["):
         root, found = _glob(text)

@@ -171,8 +171,10 @@ class Ledger:
 
     def version(self):
         """A short digest of which part files exist: changes whenever rows are added."""
-        names = "\n".join(p.name for p in self.parts())
-        return hashlib.sha256(names.encode()).hexdigest()[:16]
+        seals = self.folder / "seals"
+        names = [p.name for p in self.parts()] + sorted(p.name for p in seals.glob("seal-*.parquet")
+                                                        if seals.is_dir())
+        return hashlib.sha256("\n".join(names).encode()).hexdigest()[:16]
 
     def rows(self, status="ok", asset_key=None):
         """Rows as dicts (each with ``ledger_part``, its file's name), optionally one status and asset.
@@ -187,15 +189,15 @@ class Ledger:
         out = []
         for part in self.parts():
             for i, r in enumerate(_read_part(part)):
-                if r["row_mac"] is None and (part.name, i) in sealed:
-                    r["row_mac"] = sealed[part.name, i]        # a row older than MACs, sealed since
+                if r["row_mac"] is None:                       # a row older than MACs: sealed since?
+                    r["seal_macs"] = sealed.get((part.name, i), [])
                 if (status is None or r["status"] == status) and (asset_key is None or r["asset_key"] == asset_key):
                     out.append({**r, "ledger_part": part.name, "ledger_row": i})
         return out
 
     # -- rows written before rows carried a MAC --------------------------------
     def seals(self):
-        """{(part name, row index): MAC} of rows sealed after they were written."""
+        """{(part name, row index): [MAC, ...]} of rows sealed after they were written (any may verify)."""
         folder = self.folder / "seals"
         out = {}
         for path in sorted(folder.glob("seal-*.parquet")) if folder.is_dir() else []:
@@ -205,18 +207,26 @@ class Ledger:
                 raise LedgerError(f"{path}: not a seal file: a foreign or damaged file in the ledger; "
                                   f"move it out to continue") from None
             for r in rows:
-                out.setdefault((r["ledger_part"], r["row_index"]), r["row_mac"])
+                out.setdefault((r["ledger_part"], r["row_index"]), []).append(r["row_mac"])
         return out
 
-    def seal(self, mac_key):
-        """MAC every row that has none (rows of ledgers older than MACs); returns how many were sealed.
+    def seal(self, secret):
+        """MAC the rows under this secret's key that have none (ledgers older than MACs); how many.
+
+        Only rows whose key fingerprint the secret gives are sealed, so a
+        holder of another key never vouches for (nor blocks) rows not theirs.
 
         Whoever holds the secret vouches, by sealing, for the rows as they
         stand: run it once after upgrading, on a ledger you trust.
         """
-        from ..kernels.keys import row_mac
+        from ..kernels.keys import key_fingerprint, ledger_mac_key, row_mac
 
-        rows = [r for r in self.rows(status=None) if r["row_mac"] is None]
+        mac_key = ledger_mac_key(secret)
+        prints = {salt: key_fingerprint(secret, salt) for salt in {r["key_salt"] for r in self.rows(status=None)}}
+        mine = [r for r in self.rows(status=None) if r["key_fingerprint"] == prints[r["key_salt"]]]
+        if not mine:
+            raise LedgerError(f"{self.folder}: the secret opens none of the ledger's rows: nothing it may seal")
+        rows = [r for r in mine if r["row_mac"] is None and not mac_ok(mac_key, r)]
         if not rows:
             return 0
         table = pa.Table.from_pylist(
@@ -297,8 +307,11 @@ class Ledger:
                 record = json.loads(path.read_text())
             except (ValueError, UnicodeDecodeError):
                 continue             # not written whole: its copies were never written either
+            paths = record.get("paths") if isinstance(record, dict) else None
+            if not isinstance(paths, list) or not all(isinstance(p, str) and os.path.isabs(p) for p in paths):
+                raise LedgerError(f"{path}: not an intent file this tool wrote; move it out to continue")
             if record.get("asset_key") == asset_key:
-                out.append((path, [Path(p) for p in record.get("paths", [])]))
+                out.append((path, [Path(p) for p in paths]))
         return out
 
     # -- concurrency --------------------------------------------------------
@@ -337,8 +350,9 @@ def mac_ok(mac_key, row):
 
     from ..kernels.keys import row_mac
 
-    mac = row.get("row_mac")
-    return isinstance(mac, str) and hmac.compare_digest(mac, row_mac(mac_key, row, MAC_FIELDS))
+    macs = [row.get("row_mac")] + list(row.get("seal_macs") or [])
+    want = row_mac(mac_key, row, MAC_FIELDS)
+    return any(isinstance(mac, str) and hmac.compare_digest(mac, want) for mac in macs)
 
 
 def _asset_tag(key):

@@ -25,16 +25,17 @@ def _resolved(path):
     return Path(os.path.abspath(os.path.realpath(os.fspath(path))))
 
 
-def source_folders(source, asset_paths=()):
-    """The folders a catalogue (or suspects) source reads: the folder, a glob's fixed part, or each asset's.
+def source_folders(source):
+    """The folders a catalogue (or suspects) source reads as a whole: the folder, or a glob's fixed part.
+
+    A catalogue file or one file names its files, never a folder: an output
+    beside them is not read back (:func:`check_apart` still refuses one that
+    holds an asset).
 
     Parameters
     ----------
     source : str or Path
         A folder, a glob, a catalogue file or one file.
-    asset_paths : iterable of Path
-        The assets found there (a catalogue file's assets may lie anywhere;
-        one that does not exist reads no folder).
 
     Returns
     -------
@@ -46,7 +47,7 @@ def source_folders(source, asset_paths=()):
         return [_resolved(path)]
     if any(ch in text for ch in "*?[") and not path.exists():
         return [_resolved(_glob_root(text))]
-    return sorted({_resolved(Path(p).parent) for p in asset_paths if Path(p).exists()})
+    return []
 
 
 def _glob_root(pattern):

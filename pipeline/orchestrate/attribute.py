@@ -15,7 +15,6 @@ One path for ``pointmark detect --ledger`` and ``pointmark scan``:
 
 from __future__ import annotations
 
-import hmac
 import json
 import sys
 import time
@@ -25,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io.basis_store import BasisStore
-from ..io.ledger import MAC_FIELDS
+from ..io.ledger import mac_ok
 from ..io.pointcloud import InputError, read_points, sha256_file
 from ..io.secrets import SecretError
 from ..kernels import fingerprint, keys
@@ -277,8 +276,7 @@ def held_rows(ledger, secret, *, report=None):
     untrusted = defaultdict(list)
     usable = []
     for r in opened:
-        mac = r.get("row_mac")
-        if isinstance(mac, str) and hmac.compare_digest(mac, keys.row_mac(mac_key, r, MAC_FIELDS)):
+        if mac_ok(mac_key, r):
             usable.append(r)
         else:
             untrusted[r["ledger_part"]].append(r)

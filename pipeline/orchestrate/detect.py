@@ -111,7 +111,13 @@ def detect_from_ledger(suspect, ledger_dir, secret, detect_params, *, asset=None
     unchecked = [line for c in checks for line in c["unchecked"]]
     if unchecked and result["verdict"] != "match":      # never "no match" while copies went unchecked
         raise InputError(unchecked[0] + (f" (and {len(unchecked) - 1} more)" if len(unchecked) > 1 else ""))
-    unheld = unheld_copies(report["unheld"], {c[0] for c in candidates}, sha256_file(suspect))
+    # copies it cannot check: under keys not held, or rows set aside (no valid MAC); an asset that has
+    # only such copies was never ranked, so it counts as a candidate
+    unchecked_rows = report["unheld"] + [r for rs in report["untrusted"].values() for r in rs if r["status"] == "ok"]
+    never_ranked = {r["asset_key"] for r in unchecked_rows} - {a for a, _ in groups}
+    if asset is not None:
+        never_ranked &= {asset}
+    unheld = unheld_copies(unchecked_rows, {c[0] for c in candidates} | never_ranked, sha256_file(suspect))
     if unheld and result["verdict"] == "no match":     # copies under keys not held may be what it is
         result["verdict"] = "inconclusive"
     result.update(unchecked=unheld_summary(unheld), n_unchecked=len(unheld))

@@ -23,6 +23,7 @@ or undone by the next run of the same assets.
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import logging
@@ -155,8 +156,7 @@ def plan_job(cfg, secret, *, force=False, shard=None, create=True):
     all_assets = discover_assets(cfg["catalog"]["source"])
     store = Path(out["bases"] or Path(out["manifests"]) / "bases")
     check_apart([("output.dir", out["dir"]), ("output.manifests", out["manifests"]), ("output.bases", store)],
-                [("catalogue folder", f) for f in source_folders(cfg["catalog"]["source"],
-                                                                 [a.path for a in all_assets])],
+                [("catalogue folder", f) for f in source_folders(cfg["catalog"]["source"])],
                 [a.path for a in all_assets])
     check_disjoint(("output.dir", out["dir"]), [("output.manifests", out["manifests"]), ("output.bases", store)])
     ledger = Ledger(out["manifests"])
@@ -217,8 +217,12 @@ def _plan_asset(job, asset, recipients, rows, out_dir, force):
         return item
     item.source_sha256 = sha256_file(asset.path)
     item.generation_id = _generation_id(job.params, job.key_id, job.key_fingerprint, item.source_sha256)
-    same = [r for r in rows if r["generation_id"] == item.generation_id]
+    # only this key's rows (their MACs were checked) say what is issued; every key's rows number generations
+    same = [r for r in rows if r["generation_id"] == item.generation_id and r["key_fingerprint"] == job.key_fingerprint]
     item.generation = same[0]["generation"] if same else 1 + max((r["generation"] for r in rows), default=0)
+    if item.generation >= 2**31 - 1:
+        raise InputError(f"{job.ledger.copies}: a row of {asset.key} claims generation {item.generation - 1}: "
+                         f"not a ledger this tool wrote (a forged row?)")
     done = {r["recipient"] for r in same}
     item.issued = len(done)
     item.missing = sorted({r["recipient"] for r in same if not Path(r["output_path"]).is_file()})
@@ -346,7 +350,8 @@ def _recover(job):
         if not intents:
             continue
         found = True
-        rows = {str(r["output_path"]): r for r in job.ledger.rows(asset_key=item.key)}
+        rows = {str(r["output_path"]): r for r in job.ledger.rows(asset_key=item.key)
+                if r["key_fingerprint"] == job.key_fingerprint and mac_ok(job.mac_key, r)}
         for intent, paths in intents:
             for final in paths:
                 _settle(final, rows.get(str(final)))
@@ -358,9 +363,15 @@ def _settle(final, row):
     pending = pending_path(final)
     if not pending.is_file():
         return
-    if row is not None and not final.exists() and sha256_file(pending) == row["output_sha256"]:
-        os.link(pending, final)
-        log.warning("published %s, issued by an interrupted run", final)
+    if row is not None and sha256_file(pending) == row["output_sha256"]:
+        if not (final.exists() or final.is_symlink()):
+            _publish(pending, final)
+            log.warning("published %s, issued by an interrupted run", final)
+            return
+        if sha256_file(final) != row["output_sha256"]:      # keep the issued bytes; say so
+            print(f"[pointmark] {final}: holds other bytes than the copy its ledger row records; the issued "
+                  f"copy is kept as {pending}", file=sys.stderr, flush=True)
+            return
     pending.unlink()
 
 
@@ -405,9 +416,21 @@ def _finish_asset(job, item, rows, results, progress):
 
 
 def _publish(pending, final):
-    """Link a checked pending copy to its final name (never over another file)."""
+    """Link a checked pending copy to its final name (never over another file).
+
+    Where the file system has no hard links (exFAT, SMB), the copy is renamed
+    instead, once no file holds the name (the asset's lock keeps other runs out).
+    """
     final.parent.mkdir(parents=True, exist_ok=True)
-    os.link(pending, final)
+    try:
+        os.link(pending, final)
+    except OSError as exc:
+        if exc.errno not in (errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EXDEV, errno.EMLINK, errno.ENOSYS):
+            raise
+        if final.exists() or final.is_symlink():
+            raise FileExistsError(errno.EEXIST, "exists", str(final)) from None
+        os.rename(pending, final)
+        return
     pending.unlink()
 
 

@@ -133,7 +133,10 @@ def _reference(cfg, secret):
     issued, unheld = defaultdict(list), defaultdict(list)
     for r in rows:
         issued[r["asset_key"]].append(r)
-    for r in report["unheld"]:
+    # rows set aside (no valid MAC) are copies the scan cannot check either: a suspect that may be one
+    # of them is inconclusive, never "no match", and is checked again by the next scan (a seal may come)
+    unchecked = report["unheld"] + [r for rs in report["untrusted"].values() for r in rs if r["status"] == "ok"]
+    for r in unchecked:
         unheld[r["asset_key"]].append(r)
     originals = {r["sha256"] for r in catalogue} | {r["source_sha256"] for r in rows}
     # an issued copy with its original's bytes is no copy: it never attributes anything
@@ -142,7 +145,7 @@ def _reference(cfg, secret):
     paths, lost = _asset_files(catalogue, Path(sc["catalogue"]).resolve().parent, {**unheld, **issued}, store)
     descriptors = {r["asset_key"]: r["descriptor"] for r in catalogue if r["asset_key"] in paths}
     return {"ledger": ledger, "materials": materials, "issued": issued, "unheld": unheld, "by_sha": by_sha,
-            "unheld_sha": {r["output_sha256"]: r for r in report["unheld"]}, "originals": originals,
+            "unheld_sha": {r["output_sha256"]: r for r in unchecked}, "originals": originals,
             "descriptors": descriptors, "cat_version": cat_version,
             "assets": {r["asset_key"]: r["sha256"] for r in catalogue}, "paths": paths, "lost": lost,
             "untrusted": report["untrusted"], "store": store,
@@ -228,8 +231,7 @@ def run_scan(cfg, secret, *, force=False):
     suspects, others = _suspects(sc["suspects"], out)
     catalogue_files = [p for p in ref["paths"].values()]
     check_apart([("scan.out", out)],
-                [("suspects folder", f) for f in source_folders(sc["suspects"], [p for p, _ in suspects])]
-                + [("catalogue folder", f) for f in source_folders(sc["catalogue"], catalogue_files)],
+                [("suspects folder", f) for f in source_folders(sc["suspects"])],
                 catalogue_files)
     detect_params = config_mod.detect_params(cfg)
     store = ref["store"]

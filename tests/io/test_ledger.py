@@ -2,6 +2,8 @@
 
 import threading
 
+import pytest
+
 from pipeline.io.ledger import Ledger
 from pipeline.kernels.keys import new_salt
 
@@ -34,24 +36,32 @@ def test_rows_older_than_macs_are_sealed_once_and_then_verify(tmp_path):
     import pyarrow.parquet as pq
 
     from pipeline.io.ledger import LEDGER_SCHEMA, MAC_FIELDS
-    from pipeline.kernels.keys import ledger_mac_key, row_mac
+    from pipeline.io.ledger import LedgerError, mac_ok
+    from pipeline.kernels.keys import key_fingerprint, ledger_mac_key, row_mac
 
     ledger = Ledger(tmp_path)
+    secret, other = b"a master secret of 24 bytes", b"another master secret, 31 bytes"
     old_schema = pa.schema([f for f in LEDGER_SCHEMA if f.name != "row_mac"])     # a version-2 part
     row = {n: None for n in old_schema.names}
     row.update(schema_version=2, asset_key="a", recipient="alice", key_id="k", status="ok", generation=1,
-               key_salt="0" * 32, key_fingerprint="1" * 16, source_sha256="2" * 64, output_sha256="3" * 64)
+               key_salt="0" * 32, key_fingerprint=key_fingerprint(secret, "0" * 32), source_sha256="2" * 64,
+               output_sha256="3" * 64)
+    theirs = {**row, "recipient": "dave", "key_fingerprint": key_fingerprint(other, "0" * 32)}
     ledger.copies.mkdir(parents=True)
-    pq.write_table(pa.Table.from_pylist([row, {**row, "recipient": "bob"}], schema=old_schema),
+    pq.write_table(pa.Table.from_pylist([row, {**row, "recipient": "bob"}, theirs], schema=old_schema),
                    ledger.copies / "part-20260101T000000-old.parquet")
-    assert [r["row_mac"] for r in ledger.rows()] == [None, None]
-    key = ledger_mac_key(b"a master secret of 24 bytes")
-    assert ledger.seal(key) == 2 and ledger.seal(key) == 0
-    rows = ledger.rows()
-    assert all(r["row_mac"] == row_mac(key, r, MAC_FIELDS) for r in rows)
-    assert rows[0]["row_mac"] != rows[1]["row_mac"]
+    assert [r["row_mac"] for r in ledger.rows()] == [None, None, None]
+    with pytest.raises(LedgerError, match="opens none"):
+        ledger.seal(b"a secret that opens no row here")
+    key, their_key = ledger_mac_key(secret), ledger_mac_key(other)
+    assert ledger.seal(secret) == 2 and ledger.seal(secret) == 0      # only the rows under its own key
+    rows = {r["recipient"]: r for r in ledger.rows()}
+    assert mac_ok(key, rows["alice"]) and mac_ok(key, rows["bob"]) and not mac_ok(key, rows["dave"])
+    assert not mac_ok(their_key, rows["dave"])
+    assert ledger.seal(other) == 1 and mac_ok(their_key, {r["recipient"]: r for r in ledger.rows()}["dave"])
     ledger.append([{**row, "recipient": "carol", "schema_version": None}], mac_key=key)
-    assert all(r["row_mac"] == row_mac(key, r, MAC_FIELDS) for r in ledger.rows())
+    carol = {r["recipient"]: r for r in ledger.rows()}["carol"]
+    assert carol["row_mac"] == row_mac(key, carol, MAC_FIELDS)
 
 
 def test_the_seal_command_needs_the_secret_and_a_ledger(tmp_path):
@@ -65,10 +75,12 @@ def test_the_seal_command_needs_the_secret_and_a_ledger(tmp_path):
     res = subprocess.run([sys.executable, "-m", "pipeline.cli", "ledger", "seal", str(tmp_path)], env=env,
                          capture_output=True, text=True)
     assert res.returncode == 2 and str(tmp_path) in res.stderr and "no ledger part" in res.stderr
+    from pipeline.kernels.keys import key_fingerprint
+
     Ledger(tmp_path).append([{"asset_key": "a", "recipient": "r", "key_id": "k", "status": "ok",
-                              "key_salt": "0" * 32, "key_fingerprint": "1" * 16, "source_sha256": "2" * 64,
-                              "output_sha256": "3" * 64}])
+                              "key_salt": "0" * 32, "source_sha256": "2" * 64, "output_sha256": "3" * 64,
+                              "key_fingerprint": key_fingerprint(b"a master secret of 24 bytes", "0" * 32)}])
     res = subprocess.run([sys.executable, "-m", "pipeline.cli", "ledger", "seal", str(tmp_path)], env=env,
                          capture_output=True, text=True)
     assert res.returncode == 0 and "sealed 1 row" in res.stdout
-    assert Ledger(tmp_path).rows()[0]["row_mac"] is not None
+    assert Ledger(tmp_path).rows()[0]["seal_macs"]

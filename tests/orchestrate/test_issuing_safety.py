@@ -353,3 +353,26 @@ def test_a_row_without_a_valid_mac_under_the_runs_key_stops_the_run(tmp_path):
     assert res.returncode == 2 and str(forged) in res.stderr and "row MAC" in res.stderr, res.stderr
     assert len(res.stderr.strip().splitlines()) == 1 and not (tmp_path / "pwned.xyz").exists()
     assert len(ledger.rows()) == 3
+
+
+@pytest.mark.parametrize("source", ["one file", "a catalogue file beside the outputs"])
+def test_outputs_beside_a_catalogue_file_or_one_file_are_accepted(tmp_path, source):
+    # such a source names its files: an output folder beside them is never read back as assets
+    from pipeline.io.catalog import catalogue_record, discover_assets, write_catalogue
+
+    make_catalogue(tmp_path, n_assets=1, formats=("ply",))
+    if source == "one file":
+        cfg = write_config(tmp_path, tmp_path / "asset-0.ply")
+    else:
+        write_catalogue([catalogue_record(a) for a in discover_assets(tmp_path / "asset-0.ply")],
+                        tmp_path / "catalog.parquet")
+        cfg = write_config(tmp_path, tmp_path / "catalog.parquet")
+    assert _run_ok(cfg)["ok"] == 1
+    _check_ledger_against_files(tmp_path / "out" / "manifests", tmp_path / "out" / "marked")
+
+
+def test_a_glob_that_matches_no_asset_is_refused_and_a_trailing_double_star_reads_every_file(tmp_path):
+    src = make_catalogue(tmp_path / "assets", n_assets=2)
+    res = _cli(tmp_path, "run", str(write_config(tmp_path, f"{src}/*.nothing")))
+    assert res.returncode == 2 and "matches no point-cloud file" in res.stderr
+    assert _run_ok(write_config(tmp_path, f"{src}/**"))["ok"] == 2

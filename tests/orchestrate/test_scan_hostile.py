@@ -167,13 +167,11 @@ def test_a_suspects_folder_that_is_the_scan_output_or_a_glob_matching_nothing_is
     assert not list((world / "self.out" / "results").iterdir())
 
 
-@pytest.mark.parametrize("where", ["inside the suspects folder", "inside the catalogue folder",
-                                   "holding the catalogue", "the ledger", "inside the ledger",
-                                   "inside the issued copies"])
+@pytest.mark.parametrize("where", ["inside the suspects folder", "holding the catalogue", "the ledger",
+                                   "inside the ledger", "inside the issued copies"])
 def test_a_scan_output_that_touches_its_inputs_is_refused_before_anything_is_written(world, capsys, where):
     (world / "apart").mkdir(exist_ok=True)
-    out = {"inside the suspects folder": world / "apart" / "scan", "inside the catalogue folder":
-           world / "assets" / "scan", "holding the catalogue": world, "the ledger": world / "out" / "manifests",
+    out = {"inside the suspects folder": world / "apart" / "scan", "holding the catalogue": world, "the ledger": world / "out" / "manifests",
            "inside the ledger": world / "out" / "manifests" / "copies" / "scan",
            "inside the issued copies": world / "out" / "marked" / "scan"}[where]
     cfg_path = _scan(world, "apart")
@@ -278,6 +276,8 @@ def test_a_forged_ledger_part_never_accuses(world, capsys, case):
         return
     assert part.name in err and "untrusted" in err
     assert "1 ledger row(s) set aside as untrusted" in report and "mallory" not in report
+    if case == "forged sha256":         # the file a set-aside row names is unchecked: never a clean no match
+        assert rows["innocent.ply"]["verdict"] == "inconclusive" and rows["innocent.ply"]["n_unchecked"] == 1
 
 
 # -- item 2: copies under a key the secret does not open ------------------------------------------------------
@@ -364,3 +364,12 @@ def test_a_leak_whose_name_is_markup_is_attributed_with_its_evidence(world, caps
         row = rows[f"{name}.ply"]
         assert row["recipient"] == "bob" and row["evidence_path"] and Path(row["evidence_path"]).is_file(), row
     assert not any(line.startswith("with |") for line in err.splitlines())     # a name never starts a line
+
+
+def test_suspects_in_hidden_subfolders_are_scanned_too(tmp_path):
+    # a crawler's ".cache/" or a user's ".trash/": never skipped unsaid
+    from pipeline.io.catalog import list_suspects
+
+    write_array(tmp_path / ".hidden", "leak", procedural_shape("blob", 100, seed=1), "ply")
+    suspects, _ = list_suspects(tmp_path)
+    assert [(p.name, why) for p, why in suspects] == [("leak.ply", None)]
