@@ -173,7 +173,7 @@ def cmd_embed(args):
     except ValueError as exc:
         raise InputError(f"--message: {exc}") from None
     t0 = time.perf_counter()
-    cloud = read_points(args.original)
+    cloud = read_points(args.original, distinct=True)
     check_distinct(args.original, cloud.points)
     material = keys.derive_key_material(secret, args.key_id)
     try:

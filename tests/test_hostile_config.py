@@ -383,3 +383,31 @@ def test_the_console_script_refuses_in_one_line_and_writes_nothing(tmp_path, tex
     assert res.returncode == 2 and needle in res.stderr and len(res.stderr.splitlines()) == 1, res.stderr
     assert PASTED not in res.stderr and "Traceback" not in res.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["c.yaml"]
+
+
+def test_an_original_of_repeated_points_is_refused_in_little_memory(tmp_path):
+    # 4 M identical points (24 MB): refused while the text is checked, before any full parse
+    # (the whole parse and the exact count peaked at 750 MB)
+    (tmp_path / "same.xyz").write_bytes(b"1 2 3\n" * 4_000_000)
+    (tmp_path / "k.key").write_text(SECRET + "\n")
+    code, err, peak = _cli_with_peak("embed", tmp_path / "same.xyz", tmp_path / "m.xyz", "--key-id", "k1",
+                                     "--message", "c0", "--secret-file", tmp_path / "k.key", "--set", "n_bits=16")
+    assert code == 2 and "all points are identical" in err and len(err.splitlines()) == 1, err
+    assert peak < 500 * 1024 and not (tmp_path / "m.xyz").exists()
+
+
+def test_repeated_points_are_refused_only_where_they_are_watermarked():
+    # a suspect may repeat points (a quantised leak): only originals are refused for it
+    import tempfile
+    from pathlib import Path
+
+    from pipeline.io.pointcloud import InputError, read_points
+
+    pts = np.random.default_rng(3).uniform(-1, 1, (500, 3)).round(2)
+    text = "".join(f"{x!r} {y!r} {z!r}\n" for x, y, z in np.repeat(pts, 4, axis=0).tolist())
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "quantised.xyz"
+        path.write_text(text)
+        assert len(read_points(path).points) == 2000
+        with pytest.raises(InputError, match="1500 of 2000 points repeat"):
+            read_points(path, distinct=True)

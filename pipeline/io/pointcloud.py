@@ -12,6 +12,7 @@ place; an input is never overwritten.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import hashlib
 import os
@@ -28,7 +29,8 @@ from . import ply as ply_io
 from .obj import obj_from_points, read_obj, write_obj
 from .pcd import pcd_from_points, read_pcd, write_pcd
 from .ply import PlyError, read_ply, write_ply
-from .text import check_text, excerpt, packed_kind, pts_from_points, read_pts, read_xyz, write_text, xyz_from_points
+from .text import (check_text, excerpt, packed_kind, pts_from_points, read_pts, read_xyz, refusing_repeats, write_text,
+                   xyz_from_points)
 
 __all__ = ["PointCloud", "InputError", "WriteError", "read_points", "read_coordinates", "write_points", "write_array",
            "check_output",
@@ -86,12 +88,18 @@ def format_of(path):
     return FORMATS[suffix]
 
 
-def read_points(path):
+def read_points(path, *, distinct=False):
     """Read a point-cloud file and check its coordinates.
 
     Parameters
     ----------
     path : str or Path
+    distinct : bool
+        Also refuse a file in which more than :data:`MAX_REPEATED_SHARE` of the
+        points repeat another (what :func:`check_distinct` refuses), in a
+        text body's checking pass when few distinct points make the count
+        exact: such a file is refused in bounded memory.  For originals to
+        watermark; a suspect may repeat points (a quantised leak).
 
     Returns
     -------
@@ -111,7 +119,8 @@ def read_points(path):
             if fmt in ("las", "laz"):
                 native, points = _read_las(path)
             else:
-                native = read_ply(f) if fmt == "ply" else _READERS[fmt](f)     # text: checked block by block
+                with refusing_repeats(MAX_REPEATED_SHARE) if distinct else contextlib.nullcontext():
+                    native = read_ply(f) if fmt == "ply" else _READERS[fmt](f)  # text: checked block by block
                 points = native.points
         except OSError as exc:
             raise InputError(f"{path}: cannot read: {_reason(exc)}") from None

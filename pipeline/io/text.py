@@ -27,6 +27,8 @@ block helpers (:func:`text_blocks`, :func:`tokenise`, :func:`read_blocks`,
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import re
 from dataclasses import dataclass
 from operator import itemgetter
@@ -521,6 +523,47 @@ def _parts(source, parse, state, start, line):
         yield parse(tokenise(b"", line, 0), state)
 
 
+# set by :func:`refusing_repeats`: the checking pass counts distinct coordinates as it goes
+_REPEATS = contextvars.ContextVar("pointmark_repeats", default=None)
+
+
+class _Distinct:
+    """Distinct (x, y, z) rows seen so far, exactly, while they are fewer than ``limit``."""
+
+    def __init__(self, max_share, limit=1 << 16):
+        self.max_share, self.limit, self.n, self.rows = max_share, limit, 0, np.empty((0, 3))
+
+    def add(self, points):
+        self.n += len(points)
+        if self.rows is not None:
+            rows = np.unique(np.concatenate([self.rows, points + 0.0]), axis=0)     # + 0.0: -0.0 is 0.0
+            self.rows = rows if len(rows) < self.limit else None                  # too many to count
+
+    def check(self):
+        """Raise when more than ``max_share`` of the points surely repeat another (counted exactly)."""
+        if self.rows is None or self.n < 2:
+            return
+        repeats = self.n - len(self.rows)
+        if len(self.rows) == 1:
+            raise TextFormatError(f"all points are identical ({repeats} of {self.n} points repeat another "
+                                  f"point's coordinates; the bounding box has zero size)")
+        if repeats > self.max_share * self.n:
+            raise TextFormatError(f"{repeats} of {self.n} points repeat another point's coordinates (at most "
+                                  f"{self.max_share:.0%} may); remove duplicate points before watermarking")
+
+
+@contextlib.contextmanager
+def refusing_repeats(max_share):
+    """Inside the block, text readers refuse, at the end of their checking pass and before any
+    full parse, a body in which more than ``max_share`` of the points repeat (when few enough
+    distinct points make that exact): a file of identical points costs blocks, not its size."""
+    token = _REPEATS.set(max_share)
+    try:
+        yield
+    finally:
+        _REPEATS.reset(token)
+
+
 def read_blocks(source, parse, new_state, *, start=0, line=1):
     """Check every line of a text body block by block, then return its parsed arrays.
 
@@ -549,7 +592,14 @@ def read_blocks(source, parse, new_state, *, start=0, line=1):
     """
     state = new_state(None)
     totals, kept, held = None, [], 0
+    share = _REPEATS.get()
+    distinct = _Distinct(share) if share is not None else None
     for part in _parts(source, parse, state, start, line):
+        if distinct is not None:      # the coordinates: the part's (k, 3) float array
+            for p in part:
+                if p.dtype.kind == "f" and p.ndim == 2 and p.shape[1] == 3:
+                    distinct.add(p)
+                    break
         totals = [len(p) for p in part] if totals is None else [t + len(p) for t, p in zip(totals, part)]
         held += sum(p.nbytes for p in part)
         if held > KEEP:
@@ -560,6 +610,8 @@ def read_blocks(source, parse, new_state, *, start=0, line=1):
         for _ in _parts(source, parse, new_state(totals), start, line):
             pass
         raise TextFormatError("the file changed while it was read")
+    if distinct is not None:
+        distinct.check()
     if kept is not None:
         return [np.concatenate(arrays) for arrays in zip(*kept)]
     return _filled(_parts(source, parse, new_state(totals), start, line), totals)

@@ -64,7 +64,7 @@ class AssetPlan:
 
 
 def _points(path, source_sha256):
-    cloud = read_points(path)
+    cloud = read_points(path, distinct=True)       # an original: repeated points are refused early
     if source_sha256 and sha256_file(path) != source_sha256:
         raise InputError(f"{path}: the file changed while the run was planned (sha256 differs)")
     return cloud
