@@ -536,7 +536,7 @@ class _Distinct:
     def add(self, points):
         self.n += len(points)
         if self.rows is not None:
-            rows = np.unique(np.concatenate([self.rows, points + 0.0]), axis=0)     # + 0.0: -0.0 is 0.0
+            rows = np.unique(np.concatenate([self.rows, points]), axis=0)   # as check_distinct counts
             self.rows = rows if len(rows) < self.limit else None                  # too many to count
 
     def check(self):
