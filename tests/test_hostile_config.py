@@ -20,16 +20,10 @@ from pipeline.io.pointcloud import InputError
 from pipeline.io.secrets import SecretError, check_key_id, load_secret
 from pipeline.kernels.attacks import chain_size, check_strength
 from tests.conftest import ROOT, sphere_patch
+from tests.test_cli import _ply
 
 SECRET = "hostile-config-secret-5c1e"
 PASTED = "2120398471029384710293847102938470192384709"     # a numeric secret pasted as a path
-
-
-def _ply(path, pts):
-    head = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(pts)}\n"
-            "property double x\nproperty double y\nproperty double z\nend_header\n")
-    path.write_bytes(head.encode() + np.asarray(pts, dtype="<f8").tobytes())
-    return path
 
 
 def _refused(capsys, argv, *needles):
@@ -60,7 +54,7 @@ def _config_error(text, tmp_path, overrides=()):
     (f"key:\n  id: \"{PASTED}\\t\"\n", (), "key.id"),
     (f"key:\n  {PASTED}: 1\n", (), "key: the key is not a string"),
     (f"key:\n  '{PASTED}': 1\n", (), "key: unknown key(s) 1 (names not shown)"),
-    (f"key:\n  secret_file: .nan\n", (), "key.secret_file"),
+    ("key:\n  secret_file: .nan\n", (), "key.secret_file"),
     ("{}\n", (f"key.secret_file=[{PASTED}",), "--set key.secret_file"),
     ("{}\n", (f"key.id=[{PASTED}]",), "key.id"),
     ("{}\n", (PASTED,), "--set"),

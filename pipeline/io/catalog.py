@@ -22,7 +22,7 @@ from .manifest import CATALOG_SCHEMA, write_rows
 from .pointcloud import FORMATS, InputError, format_of, read_points, sha256_file
 
 __all__ = ["Asset", "discover_assets", "catalogue_record", "write_catalogue", "read_catalogue",
-           "check_recipient", "RECIPIENT_PATTERN", "list_suspects", "check_catalogue_out"]
+           "check_recipient", "RECIPIENT_PATTERN", "glob_root", "list_suspects", "check_catalogue_out"]
 
 LEAVES_FOLDER = "symlink leaves the catalogue folder (not read)"
 
@@ -100,15 +100,21 @@ def discover_assets(source, *, default_recipients=()):
     return sorted(assets, key=lambda a: a.key)
 
 
+def glob_root(pattern):
+    """The folder above a glob pattern's first wildcard (``.`` when it starts with one)."""
+    parts = Path(pattern).parts
+    magic = next((i for i, part in enumerate(parts) if any(ch in part for ch in "*?[")), len(parts))
+    return Path(*parts[:magic]) if magic else Path(".")
+
+
 def _glob(pattern):
     """(the folder above the first wildcard, the paths matched): pathlib's ``**`` follows no link to a
     folder (glob.glob's does, so a link loop or /proc/*/root never ends)."""
-    parts = Path(pattern).parts
-    if parts and parts[-1] == "**":          # pathlib's "**" alone names folders: every file below them
-        parts = (*parts, "*")
-    magic = next(i for i, part in enumerate(parts) if any(ch in part for ch in "*?["))
-    root = Path(*parts[:magic]) if magic else Path(".")
-    return root, (sorted(root.glob(str(Path(*parts[magic:])))) if root.is_dir() else [])
+    root = glob_root(pattern)
+    rest = Path(pattern).parts[len(root.parts):]
+    if rest and rest[-1] == "**":            # pathlib's "**" alone names folders: every file below them
+        rest = (*rest, "*")
+    return root, (sorted(root.glob(str(Path(*rest)))) if root.is_dir() else [])
 
 
 def _within(path, inside):

@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from .catalog import glob_root
 from .pointcloud import InputError
 
 __all__ = ["source_folders", "check_apart", "check_disjoint", "check_output_folder", "copy_path", "pending_path"]
@@ -46,18 +47,8 @@ def source_folders(source):
     if path.is_dir():
         return [_resolved(path)]
     if any(ch in text for ch in "*?[") and not path.exists():
-        return [_resolved(_glob_root(text))]
+        return [_resolved(glob_root(text))]
     return []
-
-
-def _glob_root(pattern):
-    parts = Path(pattern).parts
-    fixed = []
-    for part in parts:
-        if any(ch in part for ch in "*?["):
-            break
-        fixed.append(part)
-    return Path(*fixed) if fixed else Path(".")
 
 
 def _inside(a, b):

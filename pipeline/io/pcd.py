@@ -22,9 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-import os
 
-from .text import (CHUNK, MAX_LINE, TextFormatError, Window, coordinates, describe_value, describe_word,
+from .text import (CHUNK, MAX_LINE, file_head, TextFormatError, Window, coordinates, describe_value, describe_word,
                    non_finite, read_blocks, rewrite_lines, split_lines, whole_text)
 
 __all__ = ["PcdData", "PcdError", "read_pcd", "write_pcd", "pcd_from_points",
@@ -86,7 +85,7 @@ def read_pcd(data):
     -------
     PcdData
     """
-    head, size = _head(data)
+    head, size = file_head(data, MAX_HEADER + 8)
     header, fields, n, encoding = _layout(head, size)
     if encoding == "ascii":
         return _read_ascii(data, header, fields, n)
@@ -98,14 +97,6 @@ def read_pcd(data):
         records = _from_columns(_compressed_body(body, n, dtype), n, dtype)
     points = np.column_stack([records[a].astype(np.float64) for a in "xyz"])
     return PcdData(header, fields, encoding, points, records=records)
-
-
-def _head(data):
-    """(the first bytes holding the header, the length of the whole file)."""
-    if not hasattr(data, "read"):
-        return data, len(data)
-    data.seek(0)
-    return data.read(MAX_HEADER + 8), os.fstat(data.fileno()).st_size
 
 
 def check_head(head, size):

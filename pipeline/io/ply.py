@@ -10,14 +10,13 @@ mesh attacks.
 from __future__ import annotations
 
 import io
-import os
 import re
 import struct
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from .text import (CHUNK, TextFormatError, Window, describe_value, describe_word, gather, non_finite, read_blocks,
+from .text import (CHUNK, file_head, TextFormatError, Window, describe_value, describe_word, gather, non_finite, read_blocks,
                    whole_text)
 
 __all__ = ["PlyData", "read_ply", "write_ply", "PlyError", "check_head", "MAX_HEADER"]
@@ -90,7 +89,7 @@ def read_ply(data):
     -------
     PlyData
     """
-    head, size = _head(data)
+    head, size = file_head(data, MAX_HEADER + 16)
     body_start, header, fmt, elements = _header(head, size)
     count, props = elements[0][1], elements[0][2]
     if fmt == "ascii":
@@ -105,14 +104,6 @@ def read_ply(data):
         _check_binary_body(data, body_start, size - body_start, count, dtype, elements[1:], _FORMATS[fmt])
         vertices, tail = _binary_body(data, body_start, size - body_start, count, dtype)
     return PlyData(vertices, header, fmt, tail, elements)
-
-
-def _head(data):
-    """(the first bytes holding the header, the length of the whole file)."""
-    if not hasattr(data, "read"):
-        return data, len(data)
-    data.seek(0)
-    return data.read(MAX_HEADER + 16), os.fstat(data.fileno()).st_size
 
 
 def check_head(head, size):

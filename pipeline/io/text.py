@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import os
 import re
 from dataclasses import dataclass
 from operator import itemgetter
@@ -323,6 +324,14 @@ def _view_reader(view):
         at += n
         return n
     return readinto
+
+
+def file_head(data, n):
+    """(the first ``n`` bytes of an open binary file, or all of ``data`` given as bytes; its whole length)."""
+    if not hasattr(data, "read"):
+        return data, len(data)
+    data.seek(0)
+    return data.read(n), os.fstat(data.fileno()).st_size
 
 
 def non_finite(records, names=("x", "y", "z")):

@@ -68,7 +68,7 @@ from pathlib import Path
 import pyarrow as pa
 
 from .. import __version__, config as config_mod
-from ..io.catalog import list_suspects, read_catalogue
+from ..io.catalog import glob_root, list_suspects, read_catalogue
 from ..io.evidence import plain_text, render_match, write_summary
 from ..io.ledger import Ledger
 from ..io.manifest import read_rows, write_rows
@@ -327,7 +327,7 @@ def _suspects(source, out):
         ``scan.suspects`` is the scan's own output folder or inside it, or
         a glob that matches no point-cloud file.
     """
-    where = Path(str(source).split("*")[0].split("?")[0].split("[")[0] or ".")
+    where = glob_root(str(source))
     if where.resolve() == out.resolve() or out.resolve() in where.resolve().parents:
         raise config_mod.ConfigError(f"config: scan.suspects: {plain_text(source)} is inside scan.out "
                                      f"({plain_text(out)}), the scan's own results")
