@@ -22,11 +22,13 @@ threads.pin()   # before NumPy loads BLAS: one thread per process, as on the wor
 import numpy as np  # noqa: E402
 
 from . import __version__, config as config_mod
-from .io.pointcloud import InputError, check_distinct, check_output, read_points, write_points
+from .io.basis_store import BasisStore
 from .io.ledger import Ledger, LedgerError
+from .io.pointcloud import InputError, check_distinct, check_output, read_points, sha256_file, write_points
 from .io.secrets import SecretError, check_key_id, load_secret
 from .kernels import keys, modulation
-from .watermark import ReferenceMismatch, WatermarkError, detect, distortion, embed, params_record
+from .orchestrate.reference import build_reference
+from .watermark import ReferenceMismatch, WatermarkError, detect_reference, distortion, embed_reference, params_record
 
 log = logging.getLogger("pointmark")
 
@@ -74,7 +76,8 @@ def build_parser():
                                         "originals and recipients come from it, no config needed")
     where.add_argument("--original", help="the original file, to decode an arbitrary message (paper mode)")
     p.add_argument("--asset", help="with --ledger: check only this asset key")
-    p.add_argument("--bases", help="with --ledger: basis store folder (default LEDGER/bases)")
+    p.add_argument("--bases", help="basis store folder (with --ledger: default LEDGER/bases; with --original: "
+                                   "none, the reference is rebuilt; given, it is kept there and checked)")
     p.add_argument("--top-k", type=_positive, help="with --ledger: candidates checked from each ranking of the "
                                           "scan's search, descriptor votes and shape views (default scan.top_k)")
     p.add_argument("--key-id", help="with --original: id of the watermark key")
@@ -175,11 +178,14 @@ def cmd_embed(args):
     t0 = time.perf_counter()
     cloud = read_points(args.original, distinct=True)
     check_distinct(args.original, cloud.points)
+    params = config_mod.watermark_params(cfg, cloud.units())
     material = keys.derive_key_material(secret, args.key_id)
     try:
-        marked, clusters = embed(cloud.points, material, bits, params)
+        ref = build_reference(cloud.points, params)
+        marked = embed_reference(cloud.points, ref, material, bits, params)
     except WatermarkError as exc:
         raise InputError(f"{args.original}: {exc}") from None
+    clusters = ref.records()
     stored = _publish(cloud, marked, Path(args.output))  # the coordinates rounded to the output's precision
     result = {
         "output": str(args.output),
@@ -189,14 +195,17 @@ def cmd_embed(args):
         "message": modulation.bits_to_hex(bits),
         "key_id": args.key_id,
         "clusters": clusters,
+        "reference": ref.digests(),
         "distortion": distortion(cloud.points, stored),
         "params": params_record(params),
+        "marking_rule": config_mod.marking_rule(cfg, cloud.units()),
         "seconds": round(time.perf_counter() - t0, 3),
     }
     d = result["distortion"]
     _emit(args, result, [
         f"wrote {args.output}: {result['n_points']} points, {len(clusters)} clusters, "
         f"{params.n_bits} bits",
+        *([result["marking_rule"]] if result["marking_rule"] else []),
         f"distortion: RMSE {100 * d['rmse_rel_diag']:.4f} % of diag, "
         f"Hausdorff {100 * d['hausdorff_rel_diag']:.4f} %, "
         f"to the surface {100 * d['surface_rmse_rel_diag']:.4f} % (MRMS both ways "
@@ -254,10 +263,13 @@ def cmd_detect(args):
     t0 = time.perf_counter()
     suspect = read_points(args.suspect)
     original = read_points(args.original)
+    params = config_mod.watermark_params(cfg, original.units())
     material = keys.derive_key_material(secret, args.key_id)
+    store = args.bases and BasisStore(args.bases)
     try:
-        result = detect(suspect.points, original.points, material, params,
-                        config_mod.detect_params(cfg))
+        ref = build_reference(original.points, params, store, store and store.key(sha256_file(args.original), params))
+        result = detect_reference(suspect.points, original.points, ref, material, params,
+                                  config_mod.detect_params(cfg))
     except WatermarkError as exc:
         raise InputError(f"{args.original}: {exc}") from None
     result.update(suspect=str(args.suspect), original=str(args.original), key_id=args.key_id,
@@ -279,7 +291,7 @@ def cmd_detect_ledger(args):
     secret = _secret(args, cfg)
     result = detect_from_ledger(args.suspect, args.ledger, secret, config_mod.detect_params(cfg),
                                 asset=args.asset, store=args.bases,
-                                top_k=args.top_k or cfg["scan"]["top_k"])
+                                top_k=args.top_k or cfg["scan"]["top_k"], shape_margin=cfg["scan"]["shape_margin"])
     lines = [f"{args.suspect}: {result['verdict'].upper()} ({result['n_candidates_checked']} of "
              f"{len(result['candidates'])} candidate asset(s) checked, up to the first match; threshold "
              f"{result['threshold']:.2f} for {result['n_checked']} recipients)"]
@@ -380,6 +392,9 @@ def cmd_run(args):
     print(f"run {job.run_id}: {len(job.assets)} assets, {new} copies to issue, "
           f"{sum(a.issued for a in job.assets)} already issued; key {job.key_id} ({job.key_fingerprint}); "
           f"ledger {job.manifests}")
+    for item in job.assets:
+        if item.rule and item.items:
+            print(f"  {item.key}: {item.rule}")
     if args.dry_run:
         for item in job.assets:
             if item.error:

@@ -14,16 +14,16 @@ import json
 import math
 import re
 import sys
-from dataclasses import fields
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import yaml
 
 from .io.catalog import RECIPIENT_PATTERN, check_recipient
-from .watermark import DetectParams, WatermarkParams, check_code
+from .kernels import coding
 
 __all__ = ["ConfigError", "SCHEMA", "load_config", "watermark_params", "detect_params",
-           "schema_json"]
+           "schema_json", "WatermarkParams", "DetectParams", "check_code", "marking_rule", "SURVEY_FORMATS"]
 
 
 class ConfigError(ValueError):
@@ -37,11 +37,13 @@ ADDRESS_PATTERN = (r"^(?:(?:tcp|tls|ws|wss)://(?:[A-Za-z0-9](?:[A-Za-z0-9.-]{0,2
 MEMORY_PATTERN = r"^(?:auto|[0-9]+(?:\.[0-9]*)?(?:[eE][+-]?[0-9]+)? ?(?:[kKmMgGtTpP][iI]?)?[bB]?)$"
 
 
+AUTO_PATTERN = r"^auto$"
 # a key id goes into the ledger and onto every line about the key: printable, one line
 KEY_ID_PATTERN = r"^[^\x00-\x1f\x7f]{1,128}$"
 _PATTERN_HELP = {
     KEY_ID_PATTERN: "is not a key id: 1 to 128 printable characters on one line",
     ADDRESS_PATTERN: "is not a scheduler address: tcp://HOST:PORT (or tls://, ws://, wss://, inproc://)",
+    AUTO_PATTERN: "is not a number, null or auto",
     MEMORY_PATTERN: "is not a memory size: auto, or bytes as Dask reads them (4GB, 512 MiB, 2e9)",
     RECIPIENT_PATTERN: "is not a valid recipient id (letters, digits and . _ @ + -, starting with a letter or "
                        "digit, at most 128 characters)",
@@ -79,8 +81,9 @@ _SEEDS = {
 WATERMARK = _section("Embedding parameters (paper, section 2.2).", {
     "n_bits": _p("integer", 32, "Payload bits m.", minimum=1, maximum=256),
     "chip_rate": _p("integer", 10, "Chip rate c: copies of each bit.", minimum=1, maximum=1000),
-    "beta": _p("number", 0.002, "Amplitude ratio: alpha = beta * largest bbox side.",
-               exclusiveMinimum=0, maximum=0.1),
+    "beta": _p("number", 0.00115, "Amplitude ratio: alpha = beta * largest bbox side.  The default, "
+               "0.002 / sqrt(3), marks along the normals at the paper's distance to the surface (its 0.002 "
+               "in xyz).", exclusiveMinimum=0, maximum=0.1),
     "valence": _p("number", 12, "Average valence N_n of the radius mesh.", exclusiveMinimum=0,
                   maximum=200),
     "n_clusters": _p("integer", 5, "Number of clusters (ignored with cover).", minimum=1,
@@ -91,28 +94,33 @@ WATERMARK = _section("Embedding parameters (paper, section 2.2).", {
     "on_touch": _p(["stop", "skip"], "skip",
                    "A growing cluster that meets another: stop (the paper's rule) or pass around it."),
     "cover": _p("boolean", False, "Cover the whole model with clusters of cluster_size."),
-    "chip_layout": _p(["consecutive", "interleaved"], "consecutive",
+    "chip_layout": _p(["consecutive", "interleaved"], "interleaved",
                       "Chips of a bit on consecutive coefficients (paper) or spread by the key."),
     "first_coefficient": _p("integer", 0, "Index of the first modulated coefficient.", minimum=0,
                             maximum=1_000_000),
     "crc_bits": _p("integer", 0, "CRC bits appended to the payload (0, 8 or 16).", enum=[0, 8, 16]),
-    "displacement": _p(["xyz", "normal"], "xyz",
+    "displacement": _p(["xyz", "normal"], "normal",
                        "xyz: the paper's displacement; normal: its part along the normals, at the "
                        "same RMSE and peak."),
-    "amplitude": _p(["model", "cluster"], "model",
+    "amplitude": _p(["auto", "model", "cluster"], "auto",
                     "phi in alpha = beta * phi: the largest bbox side of the whole model (the paper) or of "
-                    "each cluster (large scenes: the motion follows the local extent, not the tile's)."),
-    "max_displacement": _p(("number", "null"), None,
-                           "Cap, in the asset's units, on any point's motion (survey data: e.g. 0.01); "
-                           "a cluster whose largest motion exceeds it is scaled down as a whole. "
-                           "null: no cap.", minimum=sys.float_info.min),  # no subnormal cap
+                    "each cluster (large scenes: the motion follows the local extent, not the tile's); "
+                    "auto: cluster for survey data (LAS/LAZ), model otherwise."),
+    "max_displacement": _p(("number", "null", "string"), "auto",
+                           "Cap, in the asset's units, on any point's motion; a cluster whose largest motion "
+                           "exceeds it is scaled down as a whole.  null: no cap; auto: survey_cap for survey "
+                           "data (LAS/LAZ, in the file's own units), no cap otherwise.",
+                           minimum=sys.float_info.min, pattern=AUTO_PATTERN),  # no subnormal cap
+    "survey_cap": _p("number", 0.01, "Survey data (LAS/LAZ) with max_displacement auto: the cap in metres "
+                     "(converted to the file's units from its coordinate system; metres when it names none).",
+                     minimum=1e-6, maximum=1000),
     "tile_points": _p(("integer", "null"), None,
                       "Large assets (LiDAR tiles, scanned scenes): plan clusters cell by cell over a grid of "
                       "square cells holding about this many points, each covered by clusters of cluster_size, "
                       "so planning time and memory are linear in the points; normals come from each "
                       "cluster's own points.  Needs cover: true and no seeds.  null: the whole asset at once.",
                       minimum=1000, maximum=1_000_000_000),
-    "code": _p(["repetition", "convolutional"], "repetition",
+    "code": _p(["repetition", "convolutional"], "convolutional",
                "Channel code of the payload: repetition (the paper: each bit on c chips) or "
                "convolutional (rate 1/2, K = 7, the same m x c chips over the coded word, soft "
                "max-log-MAP decoding; needs chip_rate >= 3 for 32 bits)."),
@@ -591,13 +599,136 @@ def _short(value, limit=60):
     return text if len(text) <= limit else f"{text[:limit - 5]}...{text[-2:]}"
 
 
-def watermark_params(cfg):
-    """WatermarkParams from a validated config."""
-    values = dict(cfg["watermark"])
+# ----------------------------------------------------------------------------- typed parameters
+
+def _schema_default(section, name):
+    value = copy.deepcopy(section["properties"][name]["default"])
+    return tuple(value) if isinstance(value, list) else value
+
+
+_W = {k: _schema_default(WATERMARK, k) for k in WATERMARK["properties"]}
+_D = {k: _schema_default(DETECTION, k) for k in DETECTION["properties"]}
+# what "auto" means for an asset that is not survey data
+_NOT_SURVEY = {"amplitude": "model", "max_displacement": None}
+SURVEY_FORMATS = ("las", "laz")
+_UNIT_NAMES = {None: "m", 1.0: "m", 0.3048: "ft", 1200 / 3937: "US ft"}
+
+
+@dataclass(frozen=True)
+class WatermarkParams:
+    """Parameters shared by embedding and detection (names follow the paper).
+
+    Every default is the schema's (:data:`WATERMARK`), with ``auto`` resolved
+    for an asset that is not survey data; :func:`watermark_params` resolves it
+    for a given asset.
+    """
+
+    n_bits: int = _W["n_bits"]                  # m, payload bits (before the CRC)
+    chip_rate: int = _W["chip_rate"]            # c
+    beta: float = _W["beta"]                    # amplitude ratio; alpha = beta * phi
+    valence: float = _W["valence"]              # N_n, average valence of the radius mesh
+    n_clusters: int = _W["n_clusters"]
+    cluster_size: int = _W["cluster_size"]
+    seeds: tuple | None = _W["seeds"]           # seed indices, or seed coordinates ((x, y, z), ...)
+    on_touch: str = _W["on_touch"]              # "stop" (the paper's literal rule) or "skip"
+    cover: bool = _W["cover"]                   # grow clusters over the whole model
+    chip_layout: str = _W["chip_layout"]        # "consecutive" (paper) or "interleaved"
+    first_coefficient: int = _W["first_coefficient"]
+    crc_bits: int = _W["crc_bits"]              # 0 (paper), 8 or 16
+    displacement: str = _W["displacement"]      # "xyz" (paper) or "normal": the same RMSE, along the normals
+    amplitude: str = _NOT_SURVEY["amplitude"]   # phi of the whole model (paper) or of each cluster
+    max_displacement: float | None = _NOT_SURVEY["max_displacement"]   # cap on any point's motion
+    code: str = _W["code"]                      # "repetition" (paper) or "convolutional"
+    tile_points: int | None = _W["tile_points"]  # large assets: clusters planned cell by cell
+
+    def __post_init__(self):
+        if self.amplitude == "auto" or self.max_displacement == "auto":
+            raise ValueError("WatermarkParams: amplitude and max_displacement must be resolved "
+                             "(config.watermark_params resolves auto for an asset)")
+
+    @property
+    def total_bits(self):
+        return self.n_bits + self.crc_bits
+
+    @property
+    def n_coefficients(self):
+        return self.first_coefficient + self.total_bits * self.chip_rate
+
+
+@dataclass(frozen=True)
+class DetectParams:
+    """Detection choices: the paper's steps or the robust ones (defaults: the schema's :data:`DETECTION`)."""
+
+    registration: str = _D["registration"]        # "none", "paper", "robust" or "global"
+    correspondence: str = _D["correspondence"]    # "paper" (nearest point under d_r) or "spectral"
+    p_threshold: float = _D["p_threshold"]        # "watermarked" when p_value < p_threshold
+    iterations: int = _D["iterations"]            # least-squares refits
+    ridge: float = _D["ridge"]                    # relative ridge of the least-squares fit
+    tangential_gate: float = _D["tangential_gate"]
+    ratio_gate: float = _D["ratio_gate"]
+    gate_switch: float = _D["gate_switch"]
+    epsilon: float = _D["epsilon"]                # probability of accusing any innocent, per suspect
+    outlier_trim: float | None = _D["outlier_trim"]
+
+
+def check_code(params, error=ValueError):
+    """Raise ``error`` when the chips of ``params`` cannot carry the coded word."""
+    symbols = coding.coded_length(params.total_bits, params.code)
+    if params.total_bits * params.chip_rate < symbols:
+        raise error(f"code {params.code}: {params.total_bits} bits x chip rate {params.chip_rate} = "
+                    f"{params.total_bits * params.chip_rate} chips cannot carry its {symbols} coded symbols; "
+                    f"raise chip_rate to at least {-(-symbols // params.total_bits)}")
+
+
+def watermark_params(cfg, units=None):
+    """WatermarkParams from a validated config, ``auto`` resolved for one asset.
+
+    Parameters
+    ----------
+    cfg : dict
+    units : pipeline.io.pointcloud.Units, optional
+        The asset's format, unit and rounding; LAS/LAZ are survey data, whose
+        cap is ``survey_cap`` metres in the file's units, less its rounding.
+        None: an asset that is not survey data.
+    """
+    values = {**_W, **cfg["watermark"]}      # a user's section is checked before it is filled
+    survey_cap = values.pop("survey_cap")
     seeds = values.get("seeds")
     values["seeds"] = None if seeds is None else tuple(
         tuple(s) if isinstance(s, list) else s for s in seeds)
+    survey = units is not None and units.format in SURVEY_FORMATS
+    if values["amplitude"] == "auto":
+        values["amplitude"] = "cluster" if survey else _NOT_SURVEY["amplitude"]
+    if values["max_displacement"] == "auto":
+        values["max_displacement"] = _survey_cap(survey_cap, units) if survey else _NOT_SURVEY["max_displacement"]
     return WatermarkParams(**values)
+
+
+def _survey_cap(survey_cap, units):
+    """The cap in the file's units: less its rounding, so the written copy keeps the bound, unless that
+    leaves less than one step of its coordinates (a centimetre-scale file): then the bound holds before
+    the rounding."""
+    cap = survey_cap / (units.unit_m or 1.0)
+    return cap - units.rounding if cap - units.rounding >= units.step else cap
+
+
+def marking_rule(cfg, units=None):
+    """One line saying how ``auto`` amplitude and cap were resolved for survey data; None otherwise."""
+    mark = cfg["watermark"]
+    if units is None or units.format not in SURVEY_FORMATS or "auto" not in (mark["amplitude"],
+                                                                            mark["max_displacement"]):
+        return None
+    params = watermark_params(cfg, units)
+    unit = _UNIT_NAMES.get(units.unit_m, "file units")
+    within = params.max_displacement + units.rounding <= mark["survey_cap"] / (units.unit_m or 1.0) + 1e-12
+    cap = (f"max_displacement {params.max_displacement:g} (config)" if mark["max_displacement"] != "auto" else
+           f"no point moved more than {mark['survey_cap'] * 100:g} cm "
+           + (f"(a cap of {params.max_displacement:.4g} {unit}, the file's rounding included" if within else
+              f"before rounding to the file's {units.step:g} {unit} step (at most "
+              f"{params.max_displacement + units.rounding:.4g} {unit} in the file")
+           + f"{'' if units.unit_m else '; the file names no unit: metres assumed'})")
+    return (f"survey rule ({units.format.upper()}): amplitude per {params.amplitude}, {cap}; "
+            f"set watermark.amplitude and max_displacement to override")
 
 
 def detect_params(cfg):

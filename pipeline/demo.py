@@ -146,6 +146,9 @@ def run_demo(folder, config_path):
     job = plan_job(cfg, secret)
     print(f"run {job.run_id}: {len(job.assets)} assets x {len(cfg['recipients'])} recipients, "
           f"{sum(len(a.items) for a in job.todo)} copies to issue on Dask")
+    for item in job.todo:
+        if item.rule:
+            print(f"  {item.key}: {item.rule}")
     counts = run_job(job, cfg)
     print(f"done: {counts['ok']} ok, {counts['failed']} failed, {counts['skipped']} skipped")
 
@@ -162,7 +165,8 @@ def run_demo(folder, config_path):
     points = read_points(pick["output_path"]).points
     write_array(leak.parent, leak.stem, attacks.apply_chain(points, [("random_similarity", None), ("shuffle", None)], 7),
                 "ply", keep_existing=False)
-    result = detect_from_ledger(leak, job.manifests, secret, config_mod.detect_params(cfg))
+    result = detect_from_ledger(leak, job.manifests, secret, config_mod.detect_params(cfg),
+                                top_k=cfg["scan"]["top_k"], shape_margin=cfg["scan"]["shape_margin"])
     named = ", ".join(f"{a['recipient']} (score {a['score']:.1f}, p = {a['p_value']:.2g})" for a in result["accused"])
     print(f"detect {leak} (rotated, rescaled, shuffled) --ledger {job.manifests}: {result['verdict']}: "
           f"{named or 'nobody'}; issued to {pick['recipient']}")

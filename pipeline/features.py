@@ -678,7 +678,7 @@ class FeatureIndex:
             np.add.at(out, owners[ok, 0], 1.0)
         return out
 
-    def rank(self, points, top_k=3):
+    def rank(self, points, top_k):
         """The ``top_k`` assets a suspect most likely derives from.
 
         An exact geometry hash puts its asset first.  Otherwise the suspect

@@ -15,15 +15,17 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .config import check_code
 from .kernels import (clustering, coding, digest, fingerprint, graph, keys, modulation, registration, resampling,
                       spectral)
 from .kernels import distortion as surface_measures
 
 __all__ = [
-    "WatermarkParams", "DetectParams", "Frame", "ClusterSpec", "frame_of", "plan_clusters",
+    "Frame", "ClusterSpec", "frame_of", "plan_clusters",
     "cluster_basis", "cluster_normals", "modulate_cluster", "embed", "embed_with_bases", "detect",
     "detect_with_bases", "estimate_differences", "decode", "distortion", "WatermarkError",
-    "Reference", "build_reference", "fingerprint_length", "fingerprint_displacement", "cluster_amplitude",
+    "Reference", "compute_reference", "embed_reference", "detect_reference", "fingerprint_length",
+    "fingerprint_displacement", "cluster_amplitude",
     "capped", "mark_reach", "cluster_fingerprint", "check_count", "check_digest",
     "fingerprint_observation", "ReferenceMismatch",
 ]
@@ -35,53 +37,6 @@ class WatermarkError(ValueError):
 
 class ReferenceMismatch(RuntimeError):
     """The reference rebuilt for detection differs from the one recorded at embedding."""
-
-
-@dataclass(frozen=True)
-class WatermarkParams:
-    """Parameters shared by embedding and detection (names follow the paper)."""
-
-    n_bits: int = 32                  # m, payload bits (before the CRC)
-    chip_rate: int = 10               # c
-    beta: float = 0.002               # amplitude ratio; alpha = beta * phi
-    valence: float = 12.0             # N_n, average valence of the radius mesh
-    n_clusters: int = 5
-    cluster_size: int = 4000
-    seeds: tuple | None = None        # seed indices, or seed coordinates [[x, y, z], ...]
-    on_touch: str = "skip"            # "stop" (the paper's literal rule) or "skip"
-    cover: bool = False               # grow clusters over the whole model
-    chip_layout: str = "consecutive"  # "consecutive" (paper) or "interleaved"
-    first_coefficient: int = 0        # index of the first modulated coefficient
-    crc_bits: int = 0                 # 0 (paper), 8 or 16
-    displacement: str = "xyz"         # "xyz" (paper) or "normal": the same RMSE, along the normals
-    amplitude: str = "model"          # phi of the whole model (paper) or of each cluster
-    max_displacement: float | None = None   # cap on any point's motion, in the asset's units
-    code: str = "repetition"          # "repetition" (paper: each bit on c chips) or "convolutional"
-    tile_points: int | None = None    # large assets: clusters planned cell by cell (implies cover)
-
-    @property
-    def total_bits(self):
-        return self.n_bits + self.crc_bits
-
-    @property
-    def n_coefficients(self):
-        return self.first_coefficient + self.total_bits * self.chip_rate
-
-
-@dataclass(frozen=True)
-class DetectParams:
-    """Detection choices: the paper's steps or the robust ones."""
-
-    registration: str = "robust"      # "none", "paper" (covariance) or "robust" (ICP with scale)
-    correspondence: str = "spectral"  # "paper" (nearest point under d_r) or "spectral" (least squares)
-    p_threshold: float = 1e-6         # "watermarked" when p_value < p_threshold
-    iterations: int = 2               # least-squares refits
-    ridge: float = 1.0                # relative ridge of the least-squares fit
-    tangential_gate: float = 0.25     # noisy suspects: tangential misfit of matches within this x spacing
-    ratio_gate: float = 0.5           # clean suspects: of matches nearer than this x the second nearest
-    gate_switch: float = 0.4          # noise (x median spacing) at which the fixed gate takes over
-    epsilon: float = 1e-6             # probability of accusing any innocent, per suspect
-    outlier_trim: float | None = 10.0  # matches off the surface by more are left out of the fit (None: kept)
 
 
 @dataclass(frozen=True)
@@ -135,6 +90,20 @@ class Reference:
     spacing: np.ndarray | None = field(repr=False, default=None)         # (n,), for detection
     grams: list | None = field(repr=False, default=None)                 # (3K, 3K) per cluster, normal model
 
+    def cut(self, n_coefficients):
+        """This reference with each basis cut to its first ``n_coefficients`` vectors (Grams refitted)."""
+        if all(b.shape[1] == n_coefficients for b in self.bases):
+            return self
+        bases = [b[:, :n_coefficients] for b in self.bases]
+        grams = None
+        if self.grams is not None and self.model_normals is not None:
+            grams = [resampling.normal_gram(b, self.model_normals[s.members]) for s, b in zip(self.specs, bases)]
+        return replace(self, bases=bases, grams=grams)
+
+    def records(self):
+        """The clusters as manifests record them: index, seed_index, size_limit, size, radius."""
+        return [s.record(r) for s, r in zip(self.specs, self.radii)]
+
     def detection_aids(self):
         """Keyword arguments of :func:`estimate_differences` that this reference saves computing."""
         return {"normals": self.model_normals, "grams": self.grams, "spacing": self.spacing}
@@ -170,8 +139,12 @@ def check_digest(index, kind, value, recorded, source):
             f"refusing to report on this copy")
 
 
-def build_reference(points, params):
-    """Frame, clusters, spectral bases and normals of an original.
+def compute_reference(points, params):
+    """Frame, clusters, spectral bases and normals of an original (the one computation of a reference).
+
+    :func:`pipeline.orchestrate.reference.build_reference` keeps it in a basis
+    store; the catalogue graph runs its steps (:func:`plan_clusters`, then
+    :func:`cluster_basis` and :func:`cluster_normals` per cluster) as tasks.
 
     Parameters
     ----------
@@ -185,10 +158,8 @@ def build_reference(points, params):
     frame = frame_of(points)
     centred = points - frame.centre
     specs = plan_clusters(centred, params)
-    radii, bases = zip(*(cluster_basis(centred[s.members], params) for s in specs))
-    normals = None
-    if params.displacement == "normal":
-        normals = [cluster_normals(centred, s.members, params) for s in specs]
+    radii, bases = zip(*(cluster_basis(centred[s.members], params) for s in specs)) if specs else ((), ())
+    normals = [cluster_normals(centred, s.members, params) for s in specs] if params.displacement == "normal" else None
     return Reference(frame.centre, frame.phi, specs, list(bases), normals, [float(r) for r in radii])
 
 
@@ -412,15 +383,6 @@ def payload_bits(message_bits, params):
     return np.concatenate([message_bits, modulation.crc_bits(message_bits, params.crc_bits)])
 
 
-def check_code(params, error=ValueError):
-    """Raise ``error`` when the chips cannot carry the coded word."""
-    symbols = coding.coded_length(params.total_bits, params.code)
-    if params.total_bits * params.chip_rate < symbols:
-        raise error(f"code {params.code}: {params.total_bits} bits x chip rate {params.chip_rate} = "
-                    f"{params.total_bits * params.chip_rate} chips cannot carry its {symbols} coded symbols; "
-                    f"raise chip_rate to at least {-(-symbols // params.total_bits)}")
-
-
 def chip_map(params):
     """What carries the coded word: the chip rate (repetition) or the symbol of each chip, (m * c,) int."""
     if params.code == "repetition":
@@ -497,22 +459,29 @@ def embed(points, material, message_bits, params):
     watermarked : (n, 3) float, same order and frame as ``points``
     clusters : list of dict (index, seed_index, size_limit, size, radius)
     """
-    frame = frame_of(points)
-    centred = points - frame.centre
-    specs = plan_clusters(centred, params)
-    radii, bases = zip(*(cluster_basis(centred[s.members], params) for s in specs))
-    moved = embed_with_bases(centred, specs, bases, material, message_bits, params, frame.phi)
-    return moved + frame.centre, [s.record(r) for s, r in zip(specs, radii)]
+    ref = compute_reference(points, params)
+    return embed_reference(points, ref, material, message_bits, params), ref.records()
 
 
-def embed_with_bases(centred, specs, bases, material, message_bits, params, phi):
-    """Watermark centred points whose clusters and bases are known, (n, 3) float."""
+def embed_reference(points, reference, material, message_bits, params):
+    """Watermark an original whose reference is known, (n, 3) float in the original's frame."""
+    centred = points - reference.centre
+    return embed_with_bases(centred, reference.specs, reference.bases, material, message_bits, params,
+                            reference.phi, reference.normals) + reference.centre
+
+
+def embed_with_bases(centred, specs, bases, material, message_bits, params, phi, normals=None):
+    """Watermark centred points whose clusters and bases are known, (n, 3) float.
+
+    ``normals`` (one (n_c, 3) per cluster) saves recomputing them.
+    """
     bits = payload_bits(message_bits, params)
     moved = centred.copy()
-    for spec, basis in zip(specs, bases):
+    for i, (spec, basis) in enumerate(zip(specs, bases)):
         alpha = cluster_amplitude(params, phi, centred[spec.members])
-        moved[spec.members] += capped(modulate_cluster(basis, spec.index, material, bits, alpha, params,
-                                                       cluster_normals(centred, spec.members, params)), params)
+        along = normals[i] if normals is not None else cluster_normals(centred, spec.members, params)
+        moved[spec.members] += capped(modulate_cluster(basis, spec.index, material, bits, alpha, params, along),
+                                      params)
     return moved
 
 
@@ -610,12 +579,14 @@ def detect(suspect, original, material, params, detect_params):
         bits, message (HEX), bit_scores, p_value, detected, crc_ok,
         registration and per-cluster support.
     """
-    frame = frame_of(original)
-    reference = original - frame.centre
-    specs = plan_clusters(reference, params)
-    bases = [cluster_basis(reference[s.members], params)[1] for s in specs]
-    return detect_with_bases(suspect - frame.centre, reference, specs, bases, material,
-                             params, detect_params)
+    return detect_reference(suspect, original, compute_reference(original, params), material, params,
+                            detect_params)
+
+
+def detect_reference(suspect, original, reference, material, params, detect_params):
+    """Detection against an original whose reference is known; the result of :func:`detect`."""
+    return detect_with_bases(suspect - reference.centre, original - reference.centre, reference.specs,
+                             reference.bases, material, params, detect_params)
 
 
 def detect_with_bases(suspect, reference, specs, bases, material, params, detect_params):

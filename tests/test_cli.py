@@ -169,3 +169,54 @@ def test_top_k_below_one_is_refused_by_the_parser(tmp_path, secret_env, capsys, 
         main(["detect", str(tmp_path / "s.ply"), "--ledger", str(tmp_path), "--top-k", value])
     assert exc.value.code == 2
     assert f"argument --top-k: '{value}' is not a whole number of at least 1" in capsys.readouterr().err
+
+
+def test_embedding_with_no_config_is_embedding_with_the_documented_default(tmp_path, secret_env, capsys):
+    _ply(tmp_path / "m.ply", sphere_patch(21000, rng=4))
+    written = {}
+    for name, extra in (("none", []), ("default", ["--config", str(ROOT / "configs" / "default.yaml")])):
+        out = tmp_path / f"{name}.ply"
+        assert main(["embed", str(tmp_path / "m.ply"), str(out), "--key-id", "k", "--message", "c0ffee01",
+                     "--json", *extra]) == 0
+        written[name] = (out.read_bytes(), json.loads(capsys.readouterr().out)["params"])
+    assert written["none"] == written["default"]
+    assert written["none"][1]["code"] == "convolutional" and written["none"][1]["beta"] == 0.00115
+
+
+def test_a_lidar_tile_gets_the_survey_rule_by_default(shared_data, tmp_path, secret_env, capsys):
+    import laspy
+
+    src, out = shared_data / "lidar" / "autzen_trim.laz", tmp_path / "marked.laz"
+    assert main(["embed", str(src), str(out), "--key-id", "k", "--message", "c0ffee01",
+                 "--config", str(ROOT / "configs" / "default.yaml")]) == 0
+    assert "survey rule (LAZ): amplitude per cluster, no point moved more than 1 cm" in capsys.readouterr().out
+    a, b = laspy.read(str(src)), laspy.read(str(out))
+    moved = np.linalg.norm(np.c_[a.x, a.y, a.z] - np.c_[b.x, b.y, b.z], axis=1)
+    assert 0 < moved.max() <= 0.01 / 0.3048          # autzen is in feet: 1 cm is 0.0328 ft
+    for name in a.point_format.dimension_names:
+        if name not in ("X", "Y", "Z"):
+            assert np.array_equal(np.asarray(a[name]), np.asarray(b[name])), name
+    assert main(["detect", str(out), "--original", str(src), "--key-id", "k", "--expect", "c0ffee01",
+                 "--json"]) == 0
+    found = json.loads(capsys.readouterr().out)
+    assert found["detected"] and found["bit_errors"] == 0
+
+
+def test_detect_original_keeps_its_reference_in_a_store_and_checks_it(tmp_path, small_model, secret_env, capsys):
+    assert _embed(small_model, tmp_path / "out.ply", *SMALL, "--json") == 0
+    digests = json.loads(capsys.readouterr().out)["reference"]
+    argv = ["detect", str(tmp_path / "out.ply"), "--original", str(small_model), "--key-id", "k", "--json",
+            "--bases", str(tmp_path / "bases"), *SMALL]
+    for _ in range(2):                       # built and kept, then built again and checked against the store
+        assert main(argv) == 0
+        assert json.loads(capsys.readouterr().out)["message"] == "c0ffee"
+    (entry,) = (tmp_path / "bases").iterdir()
+    cluster = next(entry.glob("cluster-0*.npz"))
+    with np.load(cluster) as held:
+        arrays = dict(held)
+    arrays["basis"] = -arrays["basis"]
+    np.savez(cluster, **arrays)
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "reference mismatch: cluster 0 spectral basis" in err and len(err.strip().splitlines()) == 1
+    assert len(digests["basis"]) == 2

@@ -6,15 +6,96 @@ from pipeline import config
 from tests.conftest import ROOT
 
 
-def test_defaults_are_the_papers():
+def test_defaults_are_the_papers_at_the_papers_distance():
     p = config.watermark_params(config.load_config())
-    assert (p.n_bits, p.chip_rate, p.beta, p.valence, p.n_clusters, p.cluster_size) == (32, 10, 0.002, 12, 5, 4000)
+    assert (p.n_bits, p.chip_rate, p.valence, p.n_clusters, p.cluster_size) == (32, 10, 12, 5, 4000)
+    # along the normals at 0.002 / sqrt(3): the paper's distance to the surface (docs/evaluation.md)
+    assert (p.beta, p.displacement, p.code, p.chip_layout) == (0.00115, "normal", "convolutional", "interleaved")
+
+
+def test_no_config_is_the_documented_default_config():
+    assert config.load_config(None) == config.load_config(ROOT / "configs" / "default.yaml")
 
 
 def test_schema_matches_the_parameter_dataclasses():
     wm, det = config.dataclass_keys()
-    assert set(config.SCHEMA["properties"]["watermark"]["properties"]) == wm
+    assert set(config.SCHEMA["properties"]["watermark"]["properties"]) == wm | {"survey_cap"}
     assert set(config.SCHEMA["properties"]["detection"]["properties"]) == det
+
+
+def test_every_dataclass_default_is_the_schemas():
+    cfg = config.load_config(None)
+    assert config.watermark_params(cfg) == config.WatermarkParams()
+    assert config.detect_params(cfg) == config.DetectParams()
+    for name, prop in config.SCHEMA["properties"]["watermark"]["properties"].items():
+        if name in ("survey_cap", "amplitude", "max_displacement"):
+            continue       # survey_cap is no field; auto is resolved (below)
+        assert getattr(config.WatermarkParams(), name) == prop["default"], name
+    for name, prop in config.SCHEMA["properties"]["detection"]["properties"].items():
+        assert getattr(config.DetectParams(), name) == prop["default"], name
+
+
+def test_auto_resolves_to_the_survey_rule_for_las_only():
+    from pipeline.io.pointcloud import Units
+
+    cfg = config.load_config(None)
+    ply = config.watermark_params(cfg, Units("ply"))
+    assert (ply.amplitude, ply.max_displacement) == ("model", None)
+    assert config.marking_rule(cfg, Units("ply")) is None
+    feet = config.watermark_params(cfg, Units("laz", 0.3048, 0.0087, 0.01))
+    assert feet.amplitude == "cluster"
+    assert feet.max_displacement + 0.0087 == pytest.approx(0.01 / 0.3048)
+    assert "survey rule (LAZ)" in config.marking_rule(cfg, Units("laz", 0.3048, 0.0087, 0.01))
+    metres = config.watermark_params(cfg, Units("las"))
+    assert metres.max_displacement == pytest.approx(0.01)
+    # centimetre steps: less their rounding would leave under one step, so the bound holds before rounding
+    coarse = Units("las", 1.0, 0.0087, 0.01)
+    assert config.watermark_params(cfg, coarse).max_displacement == pytest.approx(0.01)
+    assert "before rounding to the file's 0.01 m step" in config.marking_rule(cfg, coarse)
+    # what the config sets, it keeps
+    mine = config.load_config(None, ["amplitude=model", "max_displacement=null"])
+    assert (config.watermark_params(mine, Units("las")).amplitude,
+            config.watermark_params(mine, Units("las")).max_displacement) == ("model", None)
+    assert config.marking_rule(mine, Units("las")) is None
+    with pytest.raises(ValueError, match="resolved"):
+        config.WatermarkParams(amplitude="auto")
+
+
+def _defaulted_parameters():
+    """(file, function, parameter, default) of every function parameter named as a config key."""
+    import ast
+
+    names = {leaf for section in ("watermark", "detection", "scan", "evaluate", "dask", "output")
+             for leaf in config.SCHEMA["properties"][section]["properties"]}
+    found = []
+    for path in sorted((ROOT / "pipeline").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                args = node.args.posonlyargs + node.args.args
+                pairs = list(zip(args[len(args) - len(node.args.defaults):], node.args.defaults))
+                pairs += [(a, d) for a, d in zip(node.args.kwonlyargs, node.args.kw_defaults) if d is not None]
+                for arg, default in pairs:
+                    if arg.arg in names and not (isinstance(default, ast.Constant) and default.value is None):
+                        found.append((path.relative_to(ROOT).as_posix(), node.name, arg.arg, ast.unparse(default)))
+    return found
+
+
+# parameters that share a config key's name but not its meaning
+_OTHER_MEANING = {
+    ("pipeline/demo.py", "_bumps", "amplitude"),                    # height of the demo shapes' bumps
+    ("pipeline/features.py", "register_global", "iterations"),      # RANSAC draws
+    ("pipeline/features.py", "train", "iterations"),                # k-means rounds
+    ("pipeline/kernels/modulation.py", "along_normals", "iterations"),
+    ("pipeline/kernels/registration.py", "icp_similarity", "iterations"),
+    ("pipeline/kernels/registration.py", "ransac_similarity", "iterations"),
+    ("pipeline/kernels/registration.py", "refine_part", "iterations"),
+    ("pipeline/kernels/registration.py", "refine_plane", "iterations"),
+}
+
+
+def test_no_function_holds_a_second_default_of_a_config_key():
+    # a parameter named as a config key is given by its caller (or None: the config's), never a literal
+    assert [f for f in _defaulted_parameters() if f[:3] not in _OTHER_MEANING] == []
 
 
 def test_committed_schema_is_current():

@@ -95,8 +95,9 @@ def test_no_more_distortion_than_the_papers_method(model, prepared):
 @pytest.mark.parametrize("model", list(MODELS))
 def test_unmarked_original_and_wrong_key_are_not_watermarked(model, prepared):
     path, cache, params = prepared[model]
-    centre, _, specs, bases = evaluate.load_bases(cache, params.n_coefficients)
-    points = read_points(path).points - centre
+    points = read_points(path).points
+    centre, _, specs, bases = evaluate.load_bases(cache, points, params)
+    points = points - centre
     dparams = config.detect_params(DEFAULT)
     estimate = estimate_differences(points[np.random.default_rng(3).permutation(len(points))], points,
                                     specs, bases, dparams, params)

@@ -7,11 +7,12 @@ import pytest
 
 from pipeline import demo, watermark
 from pipeline.kernels import keys, modulation
-from pipeline.watermark import DetectParams, WatermarkParams
+from pipeline.config import DetectParams, WatermarkParams
 
 MATERIAL = keys.derive_key_material(b"amplitude-test-secret-0123456789", "tile")
 BITS = modulation.hex_to_bits("C0FFEE42", 32)
-PARAMS = WatermarkParams(cluster_size=1000, cover=True, displacement="normal", chip_layout="interleaved")
+PARAMS = WatermarkParams(cluster_size=1000, cover=True, displacement="normal", chip_layout="interleaved", beta=0.002,
+                         code="repetition")
 IN_PLACE = DetectParams(registration="none")     # a crop of a survey tile keeps its coordinates
 
 

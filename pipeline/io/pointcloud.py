@@ -15,7 +15,9 @@ from __future__ import annotations
 import contextlib
 import errno
 import hashlib
+import math
 import os
+import re
 import stat
 import sys
 import tempfile
@@ -79,6 +81,83 @@ class PointCloud:
         if self.format in ("ply", "obj"):
             return self.native.faces()
         return np.zeros((0, 3), dtype=np.int64)
+
+    def units(self):
+        """:class:`Units` of this file: its format, and for LAS/LAZ its unit and rounding."""
+        return _las_units(self.format, self.native.header) if self.format in ("las", "laz") else Units(self.format)
+
+
+@dataclass(frozen=True)
+class Units:
+    """What a file says about its coordinates, for the choice of parameters.
+
+    Attributes
+    ----------
+    format : str
+    unit_m : float or None
+        Metres per coordinate unit, when the file's coordinate system names it.
+    rounding : float
+        Farthest the file's precision can move a point (LAS/LAZ: half the
+        diagonal of its scale), in its units.
+    step : float
+        The coarsest step of the file's coordinates (LAS/LAZ: its largest
+        scale); 0 for floating point.
+    """
+
+    format: str
+    unit_m: float | None = None
+    rounding: float = 0.0
+    step: float = 0.0
+
+
+def _las_units(fmt, header):
+    scales = np.asarray(header.scales, dtype=np.float64)
+    return Units(fmt, las_unit_m(header), float(0.5 * np.sqrt((scales**2).sum())), float(scales.max()))
+
+
+def units_of(path):
+    """:class:`Units` of a file, from a LAS/LAZ header alone (other formats: the format only).
+
+    An unreadable LAS/LAZ file gets no unit; :func:`read_points` refuses it later with its reason.
+    """
+    import laspy
+
+    fmt = format_of(path)
+    if fmt not in ("las", "laz"):
+        return Units(fmt)
+    try:
+        with _native_stderr_held(), laspy.open(str(path)) as reader:
+            return _las_units(fmt, reader.header)
+    except (KeyboardInterrupt, SystemExit):
+        raise
+    except BaseException:  # noqa: BLE001 (laspy's decoders raise many types)
+        return Units(fmt)
+
+
+# EPSG linear units: metre, foot, US survey foot
+_EPSG_UNITS = {9001: 1.0, 9002: 0.3048, 9003: 1200 / 3937}
+
+
+def las_unit_m(header):
+    """Metres per horizontal unit of a LAS header (GeoTIFF ProjLinearUnits, else the WKT), or None."""
+    for vlr in header.vlrs:
+        for key in getattr(vlr, "geo_keys", None) or ():
+            if key.id == 3076 and key.value_offset in _EPSG_UNITS:
+                return _EPSG_UNITS[key.value_offset]
+    for vlr in header.vlrs:
+        text = getattr(vlr, "string", None)
+        if isinstance(text, bytes):
+            text = text.decode("latin-1")
+        if isinstance(text, str) and "PROJCS" in text:
+            horizontal = text.split("VERT_CS")[0]
+            found = re.findall(r'UNIT\["[^"]*",\s*([0-9.eE+-]+)', horizontal)
+            if found:
+                try:
+                    value = float(found[-1])
+                except ValueError:
+                    return None
+                return value if math.isfinite(value) and value > 0 else None
+    return None
 
 
 def format_of(path):

@@ -122,7 +122,7 @@ def nearest_indices(points, coordinates):
     return np.asarray(idx, dtype=np.int64)
 
 
-def grow_clusters(points, seeds, sizes, *, on_touch="stop", cover=False):
+def grow_clusters(points, seeds, sizes, *, on_touch, cover):
     """Grow disjoint clusters from seed points.
 
     Parameters

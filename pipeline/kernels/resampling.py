@@ -137,9 +137,8 @@ def normal_gram(basis, normals):
 
 
 def fit_spectral_displacement(original, normals, suspect, clusters, bases, *,
-                              iterations=3, ridge=1e-3, cut=None, tangential_gate=0.25,
-                              ratio_gate=0.5, gate_switch=0.4, normal_only=False, grams=None, spacing=None,
-                              trim=None, reach=None):
+                              iterations, ridge, tangential_gate, ratio_gate, gate_switch, cut=None,
+                              normal_only=False, grams=None, spacing=None, trim=None, reach=None):
     """Least-squares coefficient differences of every cluster.
 
     Parameters

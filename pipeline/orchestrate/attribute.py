@@ -28,11 +28,12 @@ from ..io.ledger import mac_ok
 from ..io.pointcloud import InputError, read_points, sha256_file
 from ..io.secrets import SecretError
 from ..kernels import fingerprint, keys
-from ..watermark import WatermarkParams, estimate_differences, fingerprint_length, fingerprint_observation
+from ..config import WatermarkParams
+from ..watermark import estimate_differences, fingerprint_length, fingerprint_observation
 from .reference import load_reference
 from .tasks import copy_label
 
-__all__ = ["params_from_row", "check_asset", "decide", "usable_rows", "original_files", "held_rows", "unheld_copies",
+__all__ = ["params_from_row", "reference_record", "check_asset", "decide", "usable_rows", "original_files", "held_rows", "unheld_copies",
            "unheld_summary", "TOP"]
 
 TOP = 8          # best scores kept per reference and key, beyond those over the floor
@@ -40,11 +41,18 @@ FLOOR = 4.0      # scores kept whatever their rank (an accusation needs more tha
 
 
 def params_from_row(row):
-    """WatermarkParams recorded in a ledger row."""
+    """WatermarkParams recorded in a ledger row (or in a :func:`reference_record`)."""
     record = json.loads(row["params_json"])
     seeds = record.get("seeds")
     record["seeds"] = None if seeds is None else tuple(tuple(s) if isinstance(s, list) else s for s in seeds)
     return WatermarkParams(**record)
+
+
+def reference_record(row):
+    """What a ledger row records of its reference: parameters and digests (what :func:`load_reference` checks)."""
+    return {"params_json": row["params_json"],
+            "digests": {"membership": list(row["cluster_membership_digests"]),
+                        "basis": list(row["cluster_basis_digests"])}}
 
 
 def usable_rows(rows, secret_fingerprints):
@@ -100,9 +108,8 @@ def check_asset(suspect_path, rows, materials, store, detect_params, *, places=(
         params = params_from_row(ref_rows[0])
         sha = ref_rows[0]["source_sha256"]       # (a reference is one original's bytes under one parameter set)
         original = originals[sha]
-        ref = load_reference(original, params, store, ref_key,
-                             {"membership": ref_rows[0]["cluster_membership_digests"],
-                              "basis": ref_rows[0]["cluster_basis_digests"]}, detection=True)
+        ref = load_reference(original, params, store, ref_key, reference_record(ref_rows[0])["digests"],
+                             detection=True)
         est = estimate_differences(suspect - ref.centre, original - ref.centre, ref.specs, ref.bases,
                                    detect_params, params, **ref.detection_aids())
         seconds["registration"] += est["seconds_registration"]
@@ -175,7 +182,7 @@ def _score_group(y, ref, params, rows, material, registration):
         generations[r["recipient"]].append((int(r["generation"]), r["output_path"]))
     return {
         "asset_key": rows[0]["asset_key"], "key_id": rows[0]["key_id"], "reference_key": rows[0]["reference_key"],
-        "generation": int(rows[0]["generation"]),
+        "generation": int(rows[0]["generation"]), "reference": reference_record(rows[0]),
         "n_recipients": len(recipients), "presence_p": fingerprint.presence(s),
         "best": [{"recipient": recipients[i], "score": float(s[i]), "copies": sorted(generations[recipients[i]]),
                   "cluster_scores": (fingerprint.cluster_scores(y, fingerprint.signs(bank[i], len(y))[0], len(ref.specs))
@@ -218,7 +225,7 @@ def decide(checks, epsilon, prior_checked=0, planned=0):
                            "score": s, "p_value": fingerprint.corrected_p(s, n_checked), "margin": s - innocent,
                            "copies": b["copies"], "registration": g["registration"],
                            "cluster_scores": b["cluster_scores"], "reference_key": g["reference_key"],
-                           "original_path": g.get("original_path")}
+                           "reference": g["reference"], "original_path": g.get("original_path")}
                           for s, g, b in accused]}
     # a mark is there but nobody clears the threshold: say so, never "no match"
     if accused:

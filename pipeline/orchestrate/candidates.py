@@ -65,17 +65,17 @@ def triage(suspect_path, descriptors, index_path):
             "index_ranking": index_ranking, "seconds": time.perf_counter() - t0}
 
 
-def candidates(info, view, top_k, margin=1.6):
+def candidates(info, view, top_k, shape_margin):
     """Candidates among the assets in view, alternating between the rankings (best of each first).
 
     The top-K of each ranking, and also, up to 2K from the shape ranking,
-    the assets whose shape distance is within ``margin`` times the nearest
+    the assets whose shape distance is within ``shape_margin`` times the nearest
     in view (near-identical assets tie there).
     """
     by_votes = [a for a in info["index_ranking"] if a in view][:top_k]
     shaped = [(a, d) for a, d in zip(info["ranking"], info["distances"]) if a in view]
     by_shape = [a for i, (a, d) in enumerate(shaped)
-                if i < top_k or (i < 2 * top_k and d <= margin * shaped[0][1])]
+                if i < top_k or (i < 2 * top_k and d <= shape_margin * shaped[0][1])]
     pick = [a for pair in zip(by_shape, by_votes) for a in pair]
     pick += by_shape[len(by_votes):] + by_votes[len(by_shape):]
     return list(dict.fromkeys(pick))

@@ -37,7 +37,7 @@ def candidate_groups(rows, asset=None):
     return groups
 
 
-def _rank(suspect_path, groups, top_k, store):
+def _rank(suspect_path, groups, top_k, shape_margin, store):
     """The originals to check, by ``pointmark scan``'s candidate search.
 
     Local-descriptor votes over an index of the ledger's originals (built
@@ -58,7 +58,7 @@ def _rank(suspect_path, groups, top_k, store):
     indexed = set(load_index(index_path).keys) if index_path else set()
     descriptors = {k: None if k in indexed else _whole_d2(paths[k]) for k in keys}   # D2 for what it lacks
     info = triage(suspect_path, descriptors, index_path)
-    return [keys[k] for k in candidates(info, set(keys), top_k)]
+    return [keys[k] for k in candidates(info, set(keys), top_k, shape_margin)]
 
 
 def _whole_d2(path):
@@ -82,12 +82,14 @@ def _check_in_order(suspect, candidates, groups, materials, store, detect_params
     return {**decide(checks, detect_params.epsilon, planned=planned), "checks": checks}
 
 
-def detect_from_ledger(suspect, ledger_dir, secret, detect_params, *, asset=None, store=None, top_k=None):
+def detect_from_ledger(suspect, ledger_dir, secret, detect_params, *, asset=None, store=None, top_k=None,
+                       shape_margin=None):
     """Attribute one suspect file.
 
     Without ``asset``, the candidates of ``pointmark scan``'s search are
     checked: the ``top_k`` best by local-descriptor votes and the ``top_k``
-    best by shape views, interleaved (default: the config's ``scan.top_k``),
+    best by shape views, interleaved, and near-identical shapes within
+    ``shape_margin`` (None: the config's ``scan.top_k`` and ``scan.shape_margin``),
     so parts of an asset and assets inside a scene are found as a scan
     finds them.  They are checked best-ranked first, up to the first match.
 
@@ -103,9 +105,10 @@ def detect_from_ledger(suspect, ledger_dir, secret, detect_params, *, asset=None
     rows, materials = held_rows(ledger, secret, report=report)
     groups = candidate_groups(rows, asset)
     store = Path(store) if store else ledger.folder / "bases"
-    if top_k is None:
-        top_k = config.load_config()["scan"]["top_k"]
-    candidates = _rank(suspect, groups, top_k, store)
+    search = config.load_config()["scan"]
+    top_k = search["top_k"] if top_k is None else top_k
+    shape_margin = search["shape_margin"] if shape_margin is None else shape_margin
+    candidates = _rank(suspect, groups, top_k, shape_margin, store)
     result = _check_in_order(suspect, candidates, groups, materials, store, detect_params)
     checks = result.pop("checks")
     unchecked = [line for c in checks for line in c["unchecked"]]

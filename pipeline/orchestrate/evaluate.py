@@ -8,7 +8,6 @@ bases of a model are computed once per cluster parameters, cached as a
 
 from __future__ import annotations
 
-import functools
 import json
 import sys
 import time
@@ -23,9 +22,9 @@ from .. import config as config_mod
 from ..io.pointcloud import atomic_write_bytes, read_points
 from ..kernels import fingerprint, keys, modulation
 from ..surface import apply_chain, parse_attack
-from ..watermark import (ClusterSpec, Reference, check_code, decode, distortion, embed_with_bases,
-                        estimate_differences, fingerprint_displacement, fingerprint_length,
-                        fingerprint_observation)
+from ..watermark import (decode, distortion, embed_with_bases, estimate_differences, fingerprint_displacement,
+                         fingerprint_length, fingerprint_observation)
+from .reference import build_reference, load_reference
 
 __all__ = ["run_evaluation", "parse_chain", "trial", "prepare_bases", "load_bases", "fingerprint_trial",
            "parse_case"]
@@ -64,19 +63,25 @@ def _basis_params(params, n_coefficients):
 
 
 def prepare_bases(model_path, params, store):
-    """Clusters and bases of a model in the basis store; returns the handle (store, key)."""
+    """Clusters and bases of a model built into the basis store.
+
+    Returns
+    -------
+    tuple
+        The handle: (store folder, entry key, basis parameters' coefficient
+        count, digests JSON), which :func:`load_bases` and the trials verify.
+    """
     from ..io.basis_store import BasisStore
     from ..io.pointcloud import sha256_file
-    from .reference import load_reference
 
     key = BasisStore(store).key(sha256_file(model_path), params)
-    load_reference(read_points(model_path).points, params, store, key, detection=True)
-    return str(store), key
+    ref = build_reference(read_points(model_path).points, params, store, key, detection=True)
+    return str(store), key, int(params.n_coefficients), json.dumps(ref.digests(), sort_keys=True)
 
 
-def load_bases(handle, n_coefficients):
-    """Frame and clusters of :func:`prepare_bases`: (centre (3,), phi, specs, bases (n_c, K))."""
-    ref = _stored_reference(tuple(handle), n_coefficients)
+def load_bases(handle, points, params):
+    """Frame and clusters of :func:`prepare_bases`: (centre (3,), phi, specs, bases (n_c, K)), verified."""
+    ref = _stored_reference(tuple(handle), points, params)
     return ref.centre, ref.phi, ref.specs, ref.bases
 
 
@@ -91,7 +96,7 @@ def trial(model_path, cache_path, params, detect_params, chain_text, method, see
     t0 = time.perf_counter()
     cloud = read_points(model_path)
     points = cloud.points
-    ref = _stored_reference(tuple(cache_path), params.n_coefficients)
+    ref = _stored_reference(tuple(cache_path), points, params)
     centre, phi, specs, bases = ref.centre, ref.phi, ref.specs, ref.bases
     bits = _message_bits(params)
     params, dparams = method_params(method, params, detect_params)
@@ -134,31 +139,25 @@ def _distortion_of(points, marked, key):
     return _DISTORTIONS[key]
 
 
-@functools.lru_cache(maxsize=4)
-def _stored_reference(handle, n_coefficients):
-    """The Reference of a prepared handle, bases cut to ``n_coefficients``, with its detection aids.
+def _stored_reference(handle, points, params):
+    """The Reference of a prepared handle, verified, bases cut to ``params``' coefficients, with detection aids.
 
-    Cached per worker process: the trials of one model share it.
+    Cached per worker process by the handle (whose entry key is a hash of the
+    model's bytes and the cluster parameters) and the parameters: the trials
+    of one model share it.
     """
-    from ..io.basis_store import BasisStore
-    from ..kernels import resampling
+    key = (handle, params)
+    if key not in _REFERENCES:
+        if len(_REFERENCES) >= 16:
+            _REFERENCES.clear()
+        store, entry, basis_k, digests = handle
+        whole = load_reference(points, _basis_params(params, basis_k), store, entry, json.loads(digests),
+                               source="the evaluation's prepared bases", detection=True)
+        _REFERENCES[key] = whole.cut(params.n_coefficients)
+    return _REFERENCES[key]
 
-    store, key = BasisStore(handle[0]), handle[1]
-    centre, phi, seeds, members = store.load_meta(key)
-    specs = [ClusterSpec(i, int(sd), 0, m) for i, (sd, m) in enumerate(zip(seeds, members))]
-    parts = [store.load_cluster(key, i) for i in range(len(specs))]
-    bases = [p[1][:, :n_coefficients] for p in parts]
-    normals = [p[2] for p in parts] if parts[0][2] is not None else None
-    model_normals, spacing = store.load_array(key, "model-normals"), store.load_array(key, "model-spacing")
-    grams = None
-    if normals is not None and model_normals is not None:
-        # the stored Grams are those of the whole bases; cut bases need their own
-        grams = [(store.load_array(key, f"gram-{s.index}") if b.shape[1] == p[1].shape[1] else None)
-                 for s, b, p in zip(specs, bases, parts)]
-        grams = [g if g is not None else resampling.normal_gram(b, model_normals[s.members])
-                 for g, s, b in zip(grams, specs, bases)]
-    return Reference(centre, phi, specs, bases, normals, [p[0] for p in parts], model_normals=model_normals,
-                     spacing=spacing, grams=grams)
+
+_REFERENCES = {}
 
 
 def parse_case(text):
@@ -184,7 +183,7 @@ def fingerprint_trial(model_path, handle, params, detect_params, chain_text, cas
     t0 = time.perf_counter()
     cloud = read_points(model_path)
     points = cloud.points
-    ref = _stored_reference(tuple(handle), params.n_coefficients)
+    ref = _stored_reference(tuple(handle), points, params)
     kind, k = parse_case(case)
     rng = np.random.default_rng(seed)
     names = [f"recipient-{i:05d}" for i in range(n_recipients)]
@@ -246,7 +245,7 @@ def false_positives(model_path, cache_path, params, detect_params, material, n_k
     estimated once per suspect and decoded with every wrong key.
     """
     points = read_points(model_path).points
-    ref = _stored_reference(tuple(cache_path), params.n_coefficients)
+    ref = _stored_reference(tuple(cache_path), points, params)
     centre, phi, specs, bases = ref.centre, ref.phi, ref.specs, ref.bases
     bits = _message_bits(params)
     suspects = {"unmarked original": points}
@@ -276,15 +275,14 @@ def _prep_key(model, params):
 def _cells(cfg, collusion):
     """(experiment, model, params, chain, repetitions) of the message or of the fingerprint experiments."""
     ev = cfg["evaluate"]
-    base = config_mod.watermark_params(cfg)
     for exp in ev["experiments"]:
         if bool(exp.get("collusion")) != collusion:
             continue
         for model in exp["models"]:
             for overrides in exp.get("parameters") or [{}]:
-                params = replace(base, **overrides)
+                params = config_mod.watermark_params({"watermark": {**cfg["watermark"], **overrides}})
                 try:                    # fail before any work, not in every trial
-                    check_code(params)
+                    config_mod.check_code(params)
                 except ValueError as exc:
                     raise config_mod.ConfigError(f"evaluate.experiments {exp['name']}: {exc}") from None
                 for chain in exp["attacks"]:

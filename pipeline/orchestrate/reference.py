@@ -1,23 +1,33 @@
-"""References through the basis store: computed once, shared by run, detect, scan and evaluate.
+"""References: one function builds them, one loads them, both verify digests.
 
-The plan step (frame and clusters) and the cluster step (basis, normals) are
-separate so the catalogue graph can run every cluster's eigendecomposition as
-its own task; detection calls :func:`load_reference`, which fills in whatever
-the store lacks and verifies the result against the digests the ledger
-recorded at embedding.
+:func:`build_reference` computes an original's reference (frame, clusters,
+spectral bases, normals) and, given a basis store, keeps it there; what the
+store already held must have the digests of what was rebuilt.
+:func:`load_reference` reads a reference from the store (computing what it
+lacks) and verifies it against the digests recorded when the copy was made.
+``embed``, ``detect --original`` and the evaluation build; scans,
+``detect --ledger``, the evaluation's trials and the evidence pictures load.
+
+The catalogue graph runs the same two steps of :func:`build_reference` as
+tasks, :func:`plan_reference` (frame and clusters) and one
+:func:`cluster_reference` (basis, normals) per cluster, so every cluster's
+eigendecomposition is its own task; the issue task then verifies them with
+:func:`verified_clusters`.
 """
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 
 from ..io.basis_store import BasisStore
 from ..kernels import digest, resampling
 from ..watermark import (ClusterSpec, Reference, WatermarkError, check_count, check_digest, cluster_basis,
-                         cluster_normals, frame_of, plan_clusters)
+                         cluster_normals, compute_reference, frame_of, plan_clusters)
 
-__all__ = ["plan_reference", "cluster_reference", "load_reference", "verified_clusters", "cluster_points_name",
-           "MissingClusterPoints"]
+__all__ = ["build_reference", "load_reference", "plan_reference", "cluster_reference", "verified_clusters",
+           "cluster_points_name", "MissingClusterPoints"]
 
 
 class MissingClusterPoints(WatermarkError):
@@ -121,10 +131,12 @@ def verified_clusters(points, centre, specs, params, store, key, recorded, sourc
 
 
 def _aid(store, key, name, compute):
-    value = store.load_array(key, name)
+    """A detection aid from the store, or computed (and stored, when there is a store)."""
+    value = None if store is None else store.load_array(key, name)
     if value is None:
         value = compute()
-        store.save_array(key, name, value)
+        if store is not None:
+            store.save_array(key, name, value)
     return value
 
 
@@ -153,7 +165,48 @@ def detection_aids(points, centre, specs, bases, params, store, key, cluster_nor
     return normals, spacing, grams
 
 
-def load_reference(points, params, store, key, recorded=None, source="the ledger", detection=False):
+def build_reference(points, params, store=None, key=None, *, detection=False):
+    """Compute the reference of an original; with a store, keep it there.
+
+    Parameters
+    ----------
+    points : (n, 3) float, the original
+    params : WatermarkParams
+    store : BasisStore or path, optional
+    key : str, optional
+        The store entry (``BasisStore.key(source_sha256, params)``); needed with ``store``.
+    detection : bool
+        Also compute what detection needs besides the bases
+        (:meth:`Reference.detection_aids`).
+
+    Returns
+    -------
+    Reference
+
+    Raises
+    ------
+    ReferenceMismatch
+        The store already held this entry with other members or bases than
+        the ones rebuilt (another clustering, mesh or eigen-solver).
+    """
+    ref = compute_reference(points, params)
+    if store is not None:
+        store = BasisStore(store) if not isinstance(store, BasisStore) else store
+        if store.load_meta(key) is not None:       # kept by an earlier build: it must be this one
+            load_reference(points, params, store, key, ref.digests(),
+                           source=f"the reference rebuilt from the original (basis store {store.folder})")
+        else:
+            store.save_meta(key, ref.centre, ref.phi, [s.seed_index for s in ref.specs],
+                            [s.members for s in ref.specs])
+            for i, (s, radius, basis) in enumerate(zip(ref.specs, ref.radii, ref.bases)):
+                store.save_cluster(key, s.index, radius, basis, None if ref.normals is None else ref.normals[i])
+    if not detection:
+        return ref
+    aids = detection_aids(points, ref.centre, ref.specs, ref.bases, params, store, key, ref.normals)
+    return replace(ref, **dict(zip(("model_normals", "spacing", "grams"), aids)))
+
+
+def load_reference(points, params, store, key, recorded, source="the ledger", detection=False):
     """The whole reference of an original, verified against recorded digests.
 
     Parameters
@@ -162,8 +215,9 @@ def load_reference(points, params, store, key, recorded=None, source="the ledger
     params : WatermarkParams
     store : BasisStore or path
     key : str
-    recorded : dict, optional
-        ``{"membership": [...], "basis": [...]}`` as recorded at embedding.
+    recorded : dict
+        ``{"membership": [...], "basis": [...]}`` as recorded at embedding
+        (:meth:`Reference.digests`).
     detection : bool
         Also load (or compute once and store) what detection needs besides the
         bases: :meth:`Reference.detection_aids`.
@@ -188,6 +242,5 @@ def load_reference(points, params, store, key, recorded=None, source="the ledger
                         detection_aids(points, np.asarray(centre), specs, bases, params, store, key,
                                        normals)))
     ref = Reference(np.asarray(centre), float(phi), specs, bases, normals, [float(p[0]) for p in parts], **aids)
-    if recorded is not None:
-        ref.verify(recorded, source)
+    ref.verify(recorded, source)
     return ref

@@ -34,12 +34,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from .. import __version__, threads
-from ..config import ConfigError, watermark_params
+from ..config import ConfigError, marking_rule, watermark_params
 from ..io.basis_store import BasisStore
 from ..io.catalog import check_recipient, discover_assets
 from ..io.ledger import Ledger, LedgerError, mac_ok
 from ..io.paths import check_apart, check_disjoint, copy_path, pending_path, source_folders
-from ..io.pointcloud import InputError, sha256_file
+from ..io.pointcloud import InputError, sha256_file, units_of
 from ..io.secrets import without_secret_env
 from ..kernels import keys
 from ..watermark import params_record
@@ -72,6 +72,8 @@ class AssetJob:
     issued: int = 0                               # copies of this generation already in the ledger
     missing: list = field(default_factory=list)   # issued copies whose file is gone
     error: str | None = None
+    params: object = None                         # WatermarkParams resolved for this asset
+    rule: str | None = None                       # how auto parameters were resolved (survey data)
 
 
 @dataclass
@@ -83,7 +85,8 @@ class Job:
     material: bytes = field(repr=False)
     mac_key: bytes = field(default=b"", repr=False)     # authenticates ledger rows; never sent to workers
     new_salt: bool = False                              # the salt is this run's: recorded when it starts
-    params: object = None
+    params: object = None                               # the config's, for an asset that is not survey data
+    cfg: dict = field(default=None, repr=False)         # resolves auto parameters per asset
     ledger: Ledger = None
     store: Path = None
     assets: list = field(default_factory=list)
@@ -166,7 +169,7 @@ def plan_job(cfg, secret, *, force=False, shard=None, create=True):
     salt = salt or keys.new_salt()
     fingerprint = keys.key_fingerprint(secret, salt)
     job = Job(uuid.uuid4().hex[:16], key_id, fingerprint, salt, keys.derive_key_material(secret, key_id),
-              keys.ledger_mac_key(secret), new_salt, params, ledger, store, ledger_version=version)
+              keys.ledger_mac_key(secret), new_salt, params, cfg, ledger, store, ledger_version=version)
     job.replan = lambda: plan_job(cfg, secret, force=force, shard=shard)
     assets = all_assets[shard[0]::shard[1]] if shard is not None else all_assets
     recorded = ledger.rows(status=None)
@@ -216,7 +219,10 @@ def _plan_asset(job, asset, recipients, rows, out_dir, force):
         item.items = [(r, None) for r in recipients]
         return item
     item.source_sha256 = sha256_file(asset.path)
-    item.generation_id = _generation_id(job.params, job.key_id, job.key_fingerprint, item.source_sha256)
+    units = units_of(asset.path)
+    item.params = watermark_params(job.cfg, units)
+    item.rule = marking_rule(job.cfg, units)
+    item.generation_id = _generation_id(item.params, job.key_id, job.key_fingerprint, item.source_sha256)
     # only this key's rows (their MACs were checked) say what is issued; every key's rows number generations
     same = [r for r in rows if r["generation_id"] == item.generation_id and r["key_fingerprint"] == job.key_fingerprint]
     item.generation = same[0]["generation"] if same else 1 + max((r["generation"] for r in rows), default=0)
@@ -256,14 +262,14 @@ def _check_copy_paths(job, recorded):
 
 
 def _row_base(job, item):
-    params = params_record(job.params)
+    params = params_record(item.params or job.params)
     return {"run_id": job.run_id, "generation": item.generation, "generation_id": item.generation_id,
             "asset_key": item.key, "source_path": str(Path(item.path).resolve()), "source_sha256": item.source_sha256,
             "mark": MARK, "key_id": job.key_id, "key_fingerprint": job.key_fingerprint, "key_salt": job.key_salt,
             "params_json": json.dumps(params, sort_keys=True),
             **{k: params[k] for k in ("n_bits", "chip_rate", "beta", "valence", "n_clusters", "cluster_size",
                                       "chip_layout", "displacement")},
-            "reference_key": BasisStore(job.store).key(item.source_sha256, job.params),
+            "reference_key": BasisStore(job.store).key(item.source_sha256, item.params or job.params),
             "tool_version": __version__}
 
 
@@ -442,12 +448,12 @@ def _run_serial(job, todo, cfg, progress):
             continue
         _start_asset(job, item)
         try:
-            plan = tasks.plan_asset(item.key, item.path, item.source_sha256, job.params, job.store,
+            plan = tasks.plan_asset(item.key, item.path, item.source_sha256, item.params, job.store,
                                     _row_base(job, item)["reference_key"], cfg["output"]["keep_originals"])
             progress.plan_done(len(plan.clusters))
             parts = []
             for i in range(len(plan.clusters)):
-                parts.append(tasks.cluster_task(plan, i, job.params))
+                parts.append(tasks.cluster_task(plan, i, item.params))
                 progress.cluster_done()
         except Exception as exc:  # one bad asset is a failed row, not a stopped run
             _finish_asset(job, item, _failed_rows(job, item, _error_text(exc)), results, progress)
@@ -455,7 +461,7 @@ def _run_serial(job, todo, cfg, progress):
         rows = []
         for chunk in _chunks(item.items):
             try:
-                rows += tasks.issue_task(plan, parts, job.material, chunk, job.params, _row_base(job, item))
+                rows += tasks.issue_task(plan, parts, job.material, chunk, item.params, _row_base(job, item))
             except Exception as exc:
                 rows += _failed_rows(job, item, _error_text(exc), chunk)
         _finish_asset(job, item, rows, results, progress)
@@ -472,7 +478,7 @@ def _run_dask(job, todo, cfg, progress, client):
             _finish_asset(job, item, _failed_rows(job, item, item.error), results, progress)
             continue
         _start_asset(job, item)
-        fut = client.submit(tasks.plan_asset, item.key, str(item.path), item.source_sha256, job.params,
+        fut = client.submit(tasks.plan_asset, item.key, str(item.path), item.source_sha256, item.params,
                             str(job.store), _row_base(job, item)["reference_key"],
                             cfg["output"]["keep_originals"], key=f"plan-{job.run_id}-{item.key}", pure=False)
         stage[fut.key] = ("plan", item, None)
@@ -484,7 +490,7 @@ def _run_dask(job, todo, cfg, progress, client):
         elif kind == "plan":
             n = len(fut.result().clusters)
             progress.plan_done(n)
-            parts = [client.submit(tasks.cluster_task, fut, i, job.params, pure=False,
+            parts = [client.submit(tasks.cluster_task, fut, i, item.params, pure=False,
                                    key=f"cluster-{job.run_id}-{item.key}-{i}") for i in range(n)]
             for part in parts:
                 stage[part.key] = ("cluster", item, None)
@@ -492,7 +498,7 @@ def _run_dask(job, todo, cfg, progress, client):
             chunks = _chunks(item.items)
             open_chunks[item.key], rows[item.key] = len(chunks), []
             for c, chunk in enumerate(chunks):
-                done = client.submit(tasks.issue_task, fut, parts, job.material, chunk, job.params,
+                done = client.submit(tasks.issue_task, fut, parts, job.material, chunk, item.params,
                                      _row_base(job, item), key=f"issue-{job.run_id}-{item.key}-{c}", pure=False)
                 stage[done.key] = ("issue", item, chunk)
                 pending.add(done)

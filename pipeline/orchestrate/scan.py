@@ -75,8 +75,9 @@ from ..io.manifest import read_rows, write_rows
 from ..io.paths import check_apart, check_disjoint, source_folders
 from ..io.pointcloud import InputError, atomic_write_bytes, read_points, sha256_file
 from ..kernels.descriptor import d2_descriptor
-from .attribute import check_asset, decide, held_rows, original_files, unheld_copies, unheld_summary
+from .attribute import check_asset, decide, held_rows, original_files, params_from_row, unheld_copies, unheld_summary
 from .candidates import build_index, candidates, load_index, planned_recipients, triage
+from .reference import load_reference
 
 __all__ = ["SCAN_SCHEMA", "run_scan", "read_scan", "render_evidence"]
 
@@ -429,14 +430,14 @@ def _quick(info, ref, out, versions):
 
 def render_evidence(suspect_path, original_path, accused, store, path):
     """The evidence picture of one accusation (see :func:`pipeline.io.evidence.render_match`)."""
-    from ..io.basis_store import BasisStore
-
-    centre, _, _, members = BasisStore(store).load_meta(accused["reference_key"])
+    original = read_points(original_path).points
+    ref = load_reference(original, params_from_row(accused["reference"]), store, accused["reference_key"],
+                         accused["reference"]["digests"])
     title = (f"{Path(suspect_path).name}: issued copy of {accused['asset_key']} to {accused['recipient']} "
              f"(generation {accused['copies'][-1][0]}), score {accused['score']:.1f}, p = {accused['p_value']:.2g}, "
              f"margin {accused['margin']:.1f}")
-    return render_match(read_points(original_path).points, read_points(suspect_path).points,
-                        {**accused["registration"], "centre": centre}, members, accused["cluster_scores"], title, path)
+    return render_match(original, read_points(suspect_path).points, {**accused["registration"], "centre": ref.centre},
+                        [s.members for s in ref.specs], accused["cluster_scores"], title, path)
 
 
 def _finish(out, versions, info, epsilon, store, keys_held):

@@ -17,7 +17,7 @@ def test_farthest_point_seeds_are_deterministic_and_spread():
 def test_clusters_are_disjoint_and_respect_size_limit():
     pts = sphere_patch(3000)
     seeds = farthest_point_seeds(pts, 4)
-    labels = grow_clusters(pts, seeds, 500, on_touch="skip")
+    labels = grow_clusters(pts, seeds, 500, on_touch="skip", cover=False)
     counts = np.bincount(labels[labels >= 0])
     assert counts.tolist() == [500] * 4
     assert (labels[seeds] == np.arange(4)).all()
@@ -26,22 +26,22 @@ def test_clusters_are_disjoint_and_respect_size_limit():
 def test_stop_on_touch_gives_no_larger_clusters_than_skip():
     pts = sphere_patch(3000)
     seeds = farthest_point_seeds(pts, 6)
-    stop = np.bincount(grow_clusters(pts, seeds, 450, on_touch="stop") + 1)[1:]
-    skip = np.bincount(grow_clusters(pts, seeds, 450, on_touch="skip") + 1)[1:]
+    stop = np.bincount(grow_clusters(pts, seeds, 450, on_touch="stop", cover=False) + 1)[1:]
+    skip = np.bincount(grow_clusters(pts, seeds, 450, on_touch="skip", cover=False) + 1)[1:]
     assert skip.tolist() == [450] * 6
     assert (stop <= 450).all() and stop.sum() < skip.sum()
 
 
 def test_cover_assigns_every_point():
     pts = sphere_patch(1500)
-    labels = grow_clusters(pts, farthest_point_seeds(pts, 3), 400, cover=True)
+    labels = grow_clusters(pts, farthest_point_seeds(pts, 3), 400, on_touch="stop", cover=True)
     assert (labels >= 0).all()
 
 
 def test_clusters_grow_compactly_from_their_seed():
     pts = sphere_patch(3000)
     seed = np.array([0])
-    members = np.flatnonzero(grow_clusters(pts, seed, 300) == 0)
+    members = np.flatnonzero(grow_clusters(pts, seed, 300, on_touch="stop", cover=False) == 0)
     dist = np.linalg.norm(pts - pts[0], axis=1)
     # the 300 members are nearly the 300 closest points to the seed
     assert len(np.intersect1d(members, np.argsort(dist)[:360])) >= 280
@@ -54,7 +54,7 @@ def test_seed_coordinates_map_to_nearest_points():
 
 def test_duplicate_seeds_are_rejected():
     with pytest.raises(ValueError, match="distinct"):
-        grow_clusters(sphere_patch(100), [3, 3], 10)
+        grow_clusters(sphere_patch(100), [3, 3], 10, on_touch="stop", cover=False)
 
 
 def test_grid_cells_partition_a_tile_into_squares_of_about_the_asked_size():

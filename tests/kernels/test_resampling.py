@@ -9,6 +9,9 @@ from pipeline.kernels.resampling import (
 )
 from tests.conftest import sphere_patch
 
+# the fit's settings, given as the detection config gives them
+FIT = {"iterations": 3, "ridge": 1e-3, "tangential_gate": 0.25, "ratio_gate": 0.5, "gate_switch": 0.4}
+
 
 def _basis(points, k=40):
     radius = graph.valence_radius(points, 12)
@@ -60,7 +63,7 @@ def test_spectral_fit_recovers_coefficients_from_fresh_samples():
     for gate_switch in (0.0, np.inf):
         fit = [
             fit_spectral_displacement(original, normals, cloud, [np.arange(len(original))], [basis],
-                                      iterations=2, ridge=1.0, gate_switch=gate_switch)
+                                      **{**FIT, "iterations": 2, "ridge": 1.0, "gate_switch": gate_switch})
             for cloud in (suspect, fresh)
         ]
         assert fit[0][1] == [len(suspect)]
@@ -106,7 +109,7 @@ def _normal_mark_and_samples(junk=0):
 def _normal_fit_score(trim, junk, normal_only=True):
     """Correlation of the fitted mark with the embedded one."""
     original, normals, basis, delta, suspect, unmarked = _normal_mark_and_samples(junk)
-    fit = [fit_spectral_displacement(original, normals, cloud, [np.arange(len(original))], [basis],
+    fit = [fit_spectral_displacement(original, normals, cloud, [np.arange(len(original))], [basis], **FIT,
                                      normal_only=normal_only, trim=trim, reach=spread_reach(basis, 0.004))[0][0]
            for cloud in (suspect, unmarked)]
     return np.corrcoef((fit[0] - fit[1]).ravel(), delta.ravel())[0, 1]
@@ -133,14 +136,14 @@ def test_trimming_keeps_the_mark_beside_an_unmarked_original():
     moved, _ = along_normals(basis @ delta, normals)
     suspect = np.vstack([original + moved, original])
     members = [np.arange(len(original))]
-    fit = {trim: fit_spectral_displacement(original, normals, suspect, members, [basis], normal_only=True,
-                                           trim=trim, reach=reach)[0][0]
+    fit = {trim: fit_spectral_displacement(original, normals, suspect, members, [basis], **FIT,
+                                           normal_only=True, trim=trim, reach=reach)[0][0]
            for trim, reach in [(None, None), (10.0, spread_reach(basis, 0.004))]}
     for estimate in fit.values():
         assert np.corrcoef(estimate.ravel(), delta.ravel())[0, 1] > 0.5
     assert np.allclose(fit[None], fit[10.0])
     with pytest.raises(ValueError, match="at least 1"):
-        fit_spectral_displacement(original, normals, suspect, members, [basis], trim=0.5)
+        fit_spectral_displacement(original, normals, suspect, members, [basis], **FIT, trim=0.5)
 
 
 @pytest.mark.parametrize("trim", [None, 3.0])

@@ -8,7 +8,7 @@ from pipeline.orchestrate.candidates import planned_recipients
 
 
 def _check(scores, asset="a"):
-    return {"groups": [{"asset_key": asset, "key_id": "k", "reference_key": "ref", "generation": 1,
+    return {"groups": [{"asset_key": asset, "key_id": "k", "reference_key": "ref", "generation": 1, "reference": {},
                         "n_recipients": len(scores), "presence_p": 1.0, "registration": {},
                         "best": [{"recipient": f"r{i}", "score": float(s), "copies": [(1, "x")],
                                   "cluster_scores": None} for i, s in enumerate(scores)]}]}

@@ -21,7 +21,7 @@ from pipeline.io.pointcloud import write_array
 from pipeline.demo import procedural_shape
 from pipeline.orchestrate.run import MARK, _generation_id, plan_job, run_job
 from pipeline.orchestrate.progress import Progress
-from pipeline.watermark import WatermarkParams
+from pipeline.config import WatermarkParams
 from tests.conftest import ROOT
 
 pytestmark = pytest.mark.slow
@@ -356,8 +356,8 @@ def test_an_asset_with_every_point_stored_twice_is_a_failed_row(tmp_path):
     assert {r["asset_key"] for r in failed} == {"doubled"} and "repeat another point" in failed[0]["error"]
 
 
-# the parameter record of a 0.2.0 ledger row (before amplitude and max_displacement)
-RECORD_0_2_0 = {"n_bits": 32, "chip_rate": 10, "beta": 0.002, "valence": 12.0, "n_clusters": 5,
+# the parameter record of a 0.2.0 ledger row (before amplitude and max_displacement; valence as a config gives it)
+RECORD_0_2_0 = {"n_bits": 32, "chip_rate": 10, "beta": 0.002, "valence": 12, "n_clusters": 5,
                 "cluster_size": 4000, "seeds": None, "on_touch": "skip", "cover": False,
                 "chip_layout": "consecutive", "first_coefficient": 0, "crc_bits": 0, "displacement": "xyz"}
 
@@ -368,13 +368,17 @@ def _id_0_2_0(record):
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
+# the 0.2.0 defaults, which that record holds
+PARAMS_0_2_0 = WatermarkParams(beta=0.002, chip_layout="consecutive", displacement="xyz", code="repetition")
+
+
 def test_a_rerun_with_an_unchanged_config_stays_in_its_generation():
-    assert _generation_id(WatermarkParams(), "k", "f" * 16, "s" * 64) == _id_0_2_0(RECORD_0_2_0)
+    assert _generation_id(PARAMS_0_2_0, "k", "f" * 16, "s" * 64) == _id_0_2_0(RECORD_0_2_0)
 
 
 def test_a_new_amplitude_rule_or_cap_is_a_new_generation():
-    base = _generation_id(WatermarkParams(), "k", "f" * 16, "s" * 64)
-    assert _generation_id(WatermarkParams(amplitude="cluster"), "k", "f" * 16, "s" * 64) != base
-    assert _generation_id(replace(WatermarkParams(), max_displacement=0.01), "k", "f" * 16, "s" * 64) != base
+    base = _generation_id(PARAMS_0_2_0, "k", "f" * 16, "s" * 64)
+    assert _generation_id(replace(PARAMS_0_2_0, amplitude="cluster"), "k", "f" * 16, "s" * 64) != base
+    assert _generation_id(replace(PARAMS_0_2_0, max_displacement=0.01), "k", "f" * 16, "s" * 64) != base
     # the message's channel code changes no fingerprinted copy: same generation
-    assert _generation_id(WatermarkParams(code="convolutional"), "k", "f" * 16, "s" * 64) == base
+    assert _generation_id(replace(PARAMS_0_2_0, code="convolutional"), "k", "f" * 16, "s" * 64) == base

@@ -9,18 +9,18 @@ def _info(shape, distances, votes):
 
 def test_rankings_alternate_best_first_without_repeats():
     info = _info(["a", "b", "c", "d"], [0.01, 0.5, 0.6, 0.7], ["x", "a", "y", "z"])
-    assert _candidates(info, set("abcdxyz"), 3) == ["a", "x", "b", "c", "y"]
+    assert _candidates(info, set("abcdxyz"), 3, 1.6) == ["a", "x", "b", "c", "y"]
 
 
 def test_near_ties_in_shape_are_added_up_to_twice_top_k():
     names = [f"s{i}" for i in range(10)]
     info = _info(names, [0.10, 0.11, 0.12, 0.13, 0.15, 0.16, 0.17, 0.5, 0.6, 0.7], [])
-    assert _candidates(info, set(names), 3, margin=1.6) == names[:6]
-    assert _candidates(info, set(names), 3, margin=1.35) == names[:4]
-    assert _candidates(info, set(names), 3, margin=1.0) == names[:3]
+    assert _candidates(info, set(names), 3, shape_margin=1.6) == names[:6]
+    assert _candidates(info, set(names), 3, shape_margin=1.35) == names[:4]
+    assert _candidates(info, set(names), 3, shape_margin=1.0) == names[:3]
 
 
 def test_only_assets_in_view_are_candidates_and_the_margin_counts_from_the_nearest_in_view():
     info = _info(["gone", "a", "b", "c", "d"], [0.0, 0.10, 0.12, 0.14, 0.15], ["gone", "b"])
-    assert _candidates(info, {"a", "b", "c", "d"}, 2, margin=1.6) == ["a", "b", "c", "d"]
-    assert "gone" not in _candidates(info, {"a", "b"}, 2)
+    assert _candidates(info, {"a", "b", "c", "d"}, 2, shape_margin=1.6) == ["a", "b", "c", "d"]
+    assert "gone" not in _candidates(info, {"a", "b"}, 2, 1.6)

@@ -20,14 +20,16 @@ from pipeline.orchestrate import tasks
 from pipeline.orchestrate.progress import Progress
 from pipeline.orchestrate.reference import load_reference
 from pipeline.orchestrate.run import plan_job, run_job
-from pipeline.watermark import ReferenceMismatch, WatermarkParams
+from pipeline.config import WatermarkParams
+from pipeline.watermark import ReferenceMismatch
 from tests.conftest import ROOT
 from tests.orchestrate.test_run import SECRET, _outputs, make_catalogue, write_config
 
 pytestmark = pytest.mark.slow
 
 TILED = {"n_bits": 8, "chip_rate": 4, "cluster_size": 600, "tile_points": 5000, "cover": True,
-         "amplitude": "cluster", "displacement": "normal", "chip_layout": "interleaved", "beta": 0.004}
+         "amplitude": "cluster", "displacement": "normal", "chip_layout": "interleaved", "beta": 0.004,
+         "code": "repetition"}
 
 
 @pytest.fixture(scope="module")
@@ -101,7 +103,9 @@ def test_a_damaged_stored_cluster_is_read_from_the_asset_and_stored_again(tmp_pa
 
 def test_detection_models_the_normals_a_tiled_embedding_moved_along(tmp_path, tile):
     params, store, copy, plan = _planned(tmp_path, tile)
-    ref = load_reference(read_points(copy).points, params, store, "k", detection=True)
+    parts = [tasks.cluster_task(plan, i, params) for i in range(len(plan.clusters))]
+    recorded = {"membership": [p["membership"] for p in parts], "basis": [p["basis"] for p in parts]}
+    ref = load_reference(read_points(copy).points, params, store, "k", recorded, detection=True)
     for spec, normals in zip(ref.specs, ref.normals):
         assert np.array_equal(ref.model_normals[spec.members], normals)
 

@@ -1,0 +1,81 @@
+"""Same verdicts before and after a change: a subset of the leak benchmark scanned by two trees.
+
+``python bench/rescan_compare.py issue`` (run from the *old* tree) issues the leak
+benchmark into ``bench/results/leaks`` (see ``bench/leaks.py``) and picks the
+subset: every attack's leaks in turn up to ``N_LEAKS`` and every kind of negative
+in turn up to ``N_NEGATIVES``, copied into ``leaks/compare/suspects``.
+``python bench/rescan_compare.py scan NAME`` scans the subset with the tree it
+runs from into ``leaks/compare/NAME``.  ``python bench/rescan_compare.py diff A B``
+prints every suspect whose verdict, asset or recipient differs, and the counts.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "bench"))
+
+N_LEAKS, N_NEGATIVES = 63, 21
+WORK = ROOT / "bench" / "results" / "leaks"
+
+
+def _round_robin(groups, n):
+    out, queues = [], [list(v) for _, v in sorted(groups.items())]
+    while len(out) < n and any(queues):
+        for q in queues:
+            if q and len(out) < n:
+                out.append(q.pop(0))
+    return out
+
+
+def issue():
+    import leaks
+
+    _, truth, _, t_issue = leaks._issue(WORK)
+    by_attack, by_kind = {}, {}
+    for name, (kind, _, _, attack) in sorted(truth.items()):
+        (by_attack.setdefault(attack, []) if kind == "leak" else by_kind.setdefault(kind, [])).append(name)
+    chosen = _round_robin(by_attack, N_LEAKS) + _round_robin(by_kind, N_NEGATIVES)
+    folder = WORK / "compare" / "suspects"
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+    for name in chosen:
+        shutil.copy2(WORK / "suspects" / f"{name}.ply", folder / f"{name}.ply")
+    print(f"issued in {t_issue:.0f} s; {len(chosen)} suspects chosen into {folder}")
+
+
+def scan(name):
+    import leaks
+    from pipeline.orchestrate.scan import run_scan
+
+    cfg = leaks._config(WORK, WORK / "manifests", WORK / "marked", "bench")
+    cfg["scan"]["suspects"], cfg["scan"]["out"] = str(WORK / "compare" / "suspects"), str(WORK / "compare" / name)
+    t0 = time.perf_counter()
+    status = run_scan(cfg, leaks.SECRET)
+    print(f"scanned into {cfg['scan']['out']}: exit status {status}, {time.perf_counter() - t0:.0f} s")
+
+
+def diff(a, b):
+    import leaks
+
+    truth = json.loads((WORK / "truth.json").read_text())
+    ra, rb = (leaks._results(WORK / "compare" / x) for x in (a, b))
+    keys = ("verdict", "candidate_asset", "recipient")
+    differ = [n for n in sorted(ra) if tuple(ra[n].get(k) for k in keys) != tuple(rb.get(n, {}).get(k) for k in keys)]
+    right = Counter((truth[n][0] == "leak") and (rb[n]["verdict"], rb[n]["candidate_asset"], rb[n]["recipient"])
+                    == ("match", truth[n][1], truth[n][2]) for n in rb)
+    print(f"{len(ra)} and {len(rb)} suspects; {len(differ)} differ in verdict, asset or recipient")
+    for n in differ:
+        print(" ", n, truth[n], [ra[n].get(k) for k in keys], [rb.get(n, {}).get(k) for k in keys])
+    print("verdicts", a, dict(Counter(r["verdict"] for r in ra.values())), b, dict(Counter(r["verdict"] for r in rb.values())))
+    print("leaks named right in", b, right[True], "of", sum(truth[n][0] == "leak" for n in rb))
+
+
+if __name__ == "__main__":
+    {"issue": issue, "scan": scan, "diff": diff}[sys.argv[1]](*sys.argv[2:])
