@@ -240,7 +240,7 @@ def _collect(gltf):
         raise GltfError("no mesh primitive with POSITION data is reached from a node")
     gltf.slots = list(slots.values())
     worlds = [_world(gltf, s) for s in gltf.slots]
-    points, inverse = np.unique(np.concatenate(worlds), axis=0, return_inverse=True)
+    points, inverse = _first_occurrences(np.concatenate(worlds))
     bounds = np.cumsum([0] + [len(w) for w in worlds])
     for s, a, b in zip(gltf.slots, bounds[:-1], bounds[1:]):
         s.where = np.asarray(inverse).reshape(-1)[a:b]
@@ -248,6 +248,19 @@ def _collect(gltf):
     tri = np.concatenate(tri) if tri else np.zeros((0, 3), dtype=np.int64)
     keep = (tri[:, 0] != tri[:, 1]) & (tri[:, 1] != tri[:, 2]) & (tri[:, 0] != tri[:, 2])
     gltf.points, gltf.triangles = points, tri[keep].astype(np.int64)
+
+
+def _first_occurrences(worlds):
+    """(distinct points (n, 3) in the order they first occur, (m,) index of each vertex among them).
+
+    The order follows the file's structure, not the coordinates: a marked
+    copy reads back in its original's order.
+    """
+    _, first, inverse = np.unique(worlds, axis=0, return_index=True, return_inverse=True)
+    rank = np.empty(len(first), dtype=np.int64)
+    order = np.argsort(first)
+    rank[order] = np.arange(len(first))
+    return worlds[first[order]], rank[np.asarray(inverse).reshape(-1)]
 
 
 def _walk(doc):
