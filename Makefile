@@ -3,6 +3,7 @@
 VENV    := .venv
 PY      := $(VENV)/bin/python
 STAMP   := $(VENV)/.installed
+NPM_STAMP := node_modules/.installed
 SUDO    := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 DEBS    := libusb-1.0-0 libgomp1
 
@@ -19,7 +20,14 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q -e ".[test]"
 	@touch $(STAMP)
 
-setup: $(STAMP)
+# glTF Transform's CLI and the Khronos validator (package.json) for the glTF attacks and tests;
+# skipped, with a note, where node and npm are missing (those tests then skip).
+$(NPM_STAMP): package.json
+	@if command -v npm >/dev/null 2>&1; then \
+	  npm install --no-audit --no-fund --loglevel=error && touch $(NPM_STAMP); \
+	else echo "npm not found: the glTF tool attacks and the validator test are skipped"; fi
+
+setup: $(STAMP) $(NPM_STAMP)
 
 demo: setup
 	$(VENV)/bin/pointmark demo
@@ -40,4 +48,4 @@ schema: setup
 	$(VENV)/bin/pointmark schema > configs/schema.json
 
 clean:
-	rm -rf $(VENV) catalog/demo out .pytest_cache
+	rm -rf $(VENV) node_modules catalog/demo out .pytest_cache

@@ -107,13 +107,15 @@ class GltfData:
 def check_head(fmt, head, size):
     """A GLB's header against the file's length; a ``.gltf`` must start as JSON text."""
     if fmt == "glb":
-        if len(head) < 20 or head[:4] != _GLB_MAGIC:
+        if len(head) < 12 or head[:4] != _GLB_MAGIC:
             raise GltfError("not a GLB file (no 'glTF' magic)")
         version, length = struct.unpack_from("<II", head, 4)
         if version != 2:
             raise GltfError(f"GLB version {version} is not supported (2 expected)")
         if length != size:
             raise GltfError(f"the GLB header declares {length} bytes, the file holds {size}")
+        if size < 20:
+            raise GltfError("truncated: the GLB holds no JSON chunk")
     elif not head.lstrip()[:1] == b"{":
         raise GltfError("not a glTF file (its JSON does not start with '{')")
 
