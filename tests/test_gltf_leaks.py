@@ -1,0 +1,35 @@
+"""GLB copies issued by a catalogue run, leaked through glTF Transform and trimesh, attributed by `pointmark scan`.
+
+Small settings (the helmet, two recipients, two clusters); the full table of
+every tool on the helmet and the owl scan is ``bench/gltf.py``.
+"""
+
+import importlib.util
+
+import pytest
+
+from pipeline.io import gltf_tools
+from tests.conftest import ROOT
+
+pytestmark = [pytest.mark.slow,
+              pytest.mark.skipif(not gltf_tools.tools_available(),
+                                 reason="node and gltf-transform not installed (make setup)")]
+
+
+def _bench():
+    spec = importlib.util.spec_from_file_location("bench_gltf", ROOT / "bench" / "gltf.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_leaks_through_the_tools_are_attributed(shared_data, tmp_path):
+    bench = _bench()
+    bench.RECIPIENTS[:] = ["alice", "bob"]
+    assets = {"helmet": shared_data / "gltf" / "DamagedHelmet.glb"}
+    attacks = {k: bench.ATTACKS[k] for k in ("optimize", "draco14", "quantize", "simplify50", "ply", "obj")}
+    cfg = bench.build(tmp_path, assets, {"n_clusters": 2, "cluster_size": 2500})
+    rows = bench.scan(tmp_path, cfg, bench.leak(tmp_path, assets, attacks))
+    assert len(rows) == len(attacks)
+    for r in rows:
+        assert r["right"] and r["score"] >= r["threshold"], r
