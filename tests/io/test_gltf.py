@@ -264,3 +264,15 @@ def test_the_validator_finds_nothing_new_in_written_files(shared_data, tmp_path)
         target = tmp_path / "out" / f"{source.stem}-copy{source.suffix}"
         round_trip(source, target)
         assert _problems(target) <= _problems(source), source.name
+
+
+@needs_tools
+def test_tool_attacks_chain_in_an_evaluation(tmp_path):
+    from pipeline.orchestrate.evaluate import parse_chain
+    from pipeline.surface import apply_chain
+
+    points, faces = _grid(20)
+    chain = parse_chain("gltf-weld+gltf-simplify:0.5+gltf-draco:11")
+    assert chain[1] == ("gltf-simplify", 0.5) and chain[2] == ("gltf-draco", 11.0)
+    out = apply_chain(points.astype(np.float64), chain, 0, faces=faces.astype(np.int64))
+    assert 0 < len(out) < len(points) and np.abs(out).max() < 1.5
