@@ -70,7 +70,7 @@ def generated(kind):
         view = add(np.hstack([points, normals]).tobytes(), stride=24)
         accessors += [_vec3(view, n, points), _vec3(view, n, normals, offset=12)]
     elif kind == "shared-view":                # POSITION and NORMAL one after the other in one view
-        view = add(points.tobytes() + normals.tobytes())
+        view = add(points.tobytes() + normals.tobytes(), stride=12)      # a shared vertex view needs a stride
         accessors += [_vec3(view, n, points), _vec3(view, n, normals, offset=points.nbytes)]
     elif kind == "quantized":                  # KHR_mesh_quantization: normalized int16, scale in the node
         q = np.rint(points / 1.5 * 32767).astype("<i2")
@@ -93,7 +93,7 @@ def generated(kind):
                       {"bufferView": add(inverse.tobytes()), "componentType": 5126, "count": 1, "type": "MAT4"}]
         views[-1].pop("target")
         attributes.update(JOINTS_0=3, WEIGHTS_0=4)
-        nodes[0]["skin"] = 0
+        nodes[0]["skin"] = 0                   # its translation is ignored (the validator warns, as on input)
         nodes.append({"translation": [0.0, 1.0, 0.0]})
         extra["skins"] = [{"joints": [1], "inverseBindMatrices": 5}]
     elif kind == "morph":
