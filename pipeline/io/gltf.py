@@ -12,10 +12,14 @@ and ``max``: each point's new world position goes back through the inverse
 node transform, a mesh instanced on several nodes takes the mean of its
 instances' positions, and the values are stored in the accessor's own
 component type (float32, or KHR_mesh_quantization's integers, normalized or
-not).  The JSON is re-serialised from its parsed values (same keys, order and
-values) and every other byte of every buffer is kept.  A ``.gltf`` output
-holds the changed buffers as base64 data URIs; its other URIs (textures,
-untouched buffers) are kept as they are, relative to the copy's folder.
+not).  The JSON text is patched in place: only the numbers of those
+accessors' ``min`` and ``max`` arrays (and the base64 of a changed buffer's
+URI) are spliced in, every other byte of the text is kept, and every other
+byte of every buffer.  A GLB keeps its chunks; only the JSON chunk's length
+and space padding and the header's total length follow the text.  A ``.gltf``
+output (or a GLB's buffer with a URI) holds the changed buffers as base64 data
+URIs; its other URIs (textures, untouched buffers) are kept as they are,
+relative to the copy's folder.
 
 Suspects compressed with KHR_draco_mesh_compression (DracoPy) or
 EXT_meshopt_compression (meshoptimizer) are read; such originals, and
@@ -87,6 +91,12 @@ class GltfData:
     slots : list of _Slot
     refusal : str or None
         Why the file cannot be written back (a compression extension, a sparse position accessor).
+    text : bytes
+        The JSON text as stored (a GLB's JSON chunk, padding included).
+    source : bytes
+        The whole file as read.
+    bin_at : int or None
+        Where the GLB's BIN chunk data starts in ``source``.
     """
 
     doc: dict
@@ -98,6 +108,9 @@ class GltfData:
     slots: list = field(default_factory=list)
     refusal: str = None
     views: dict = field(default_factory=dict)     # meshopt-decoded buffer views
+    text: bytes = b""
+    source: bytes = b""
+    bin_at: int = None
 
     def faces(self):
         """(f, 3) int64 triangles over the points, empty when the file has none."""
@@ -141,9 +154,9 @@ def read_gltf(data, path, *, original=False):
     raw = data
     path = Path(path)
     container = "glb" if path.suffix.lower() == ".glb" else "gltf"
-    text, blob = _split_glb(raw) if container == "glb" else (raw, None)
+    text, blob, bin_at = _split_glb(raw) if container == "glb" else (raw, None, None)
     doc = _parse_json(text)
-    gltf = GltfData(doc, [], container, path.parent)
+    gltf = GltfData(doc, [], container, path.parent, text=bytes(text), source=bytes(raw), bin_at=bin_at)
     gltf.buffers = [_buffer(gltf, i, b, blob) for i, b in enumerate(doc.get("buffers", []))]
     gltf.refusal = _refusal(doc)
     if original and gltf.refusal:
@@ -153,7 +166,7 @@ def read_gltf(data, path, *, original=False):
 
 
 def _split_glb(raw):
-    """(JSON bytes, BIN chunk bytes or None) of a GLB."""
+    """(JSON bytes, BIN chunk bytes or None, where the BIN data starts or None) of a GLB."""
     if len(raw) < 20 or raw[:4] != _GLB_MAGIC:
         raise GltfError("not a GLB file (no 'glTF' magic)")
     chunks, at = [], 12
@@ -161,12 +174,13 @@ def _split_glb(raw):
         length, kind = struct.unpack_from("<II", raw, at)
         if at + 8 + length > len(raw):
             raise GltfError(f"truncated: a GLB chunk at byte {at} declares {length} bytes")
-        chunks.append((kind, raw[at + 8:at + 8 + length]))
+        chunks.append((kind, raw[at + 8:at + 8 + length], at + 8))
         at += 8 + length + (-length % 4)
     if not chunks or chunks[0][0] != _JSON_CHUNK:
         raise GltfError("the GLB's first chunk is not JSON")
-    blob = chunks[1][1] if len(chunks) > 1 and chunks[1][0] == _BIN_CHUNK else None
-    return chunks[0][1], blob
+    if len(chunks) > 1 and chunks[1][0] == _BIN_CHUNK:
+        return chunks[0][1], chunks[1][1], chunks[1][2]
+    return chunks[0][1], None, None
 
 
 def _parse_json(text):
@@ -442,7 +456,7 @@ def _triangles(gltf, prim, count):
 
 
 def write_gltf(gltf, points):
-    """The file's bytes with the POSITION accessors holding ``points``.
+    """The file's bytes with the POSITION accessors holding ``points``; every other byte as it was.
 
     Parameters
     ----------
@@ -459,12 +473,17 @@ def write_gltf(gltf, points):
     points = np.asarray(points, dtype=np.float64)
     if points.shape != gltf.points.shape:
         raise GltfError(f"{len(points)} points given for a file of {len(gltf.points)}")
-    doc = json.loads(json.dumps(gltf.doc))
     buffers = [bytearray(b) for b in gltf.buffers]
-    changed = set()
+    bounds, changed = {}, set()
     for acc, local in _locals(gltf, points).items():
-        changed.add(_store(doc, buffers, acc, local))
-    return _glb(doc, buffers) if gltf.container == "glb" else _gltf_text(gltf, doc, buffers, changed)
+        buffer, bounds[acc] = _store(gltf.doc, buffers, acc, local)
+        changed.add(buffer)
+    text = gltf.text.decode("utf-8")
+    edits = _bound_edits(text, bounds) + _uri_edits(gltf, text, buffers, changed)
+    text = _splice(text, edits).encode("utf-8")
+    if gltf.container == "gltf":
+        return text
+    return _glb_patched(gltf, text, buffers, changed)
 
 
 def _locals(gltf, points):
@@ -479,7 +498,12 @@ def _locals(gltf, points):
 
 
 def _store(doc, buffers, index, local):
-    """Write local positions into accessor ``index``'s bytes at its own type; update its min and max."""
+    """Write local positions into accessor ``index``'s bytes at its own type.
+
+    Returns
+    -------
+    (buffer index, {"min": [3 JSON numbers], "max": [...]}) : the bounds as JSON text
+    """
     acc = doc["accessors"][index]
     kind = acc["componentType"]
     dtype = np.dtype(_DTYPES[kind])
@@ -495,15 +519,142 @@ def _store(doc, buffers, index, local):
     target = np.ndarray((len(stored), 3), dtype=dtype, buffer=buffers[view["buffer"]], offset=start,
                         strides=(stride, dtype.itemsize))
     target[...] = stored
-    if "min" in acc or "max" in acc:
-        as_json = (lambda v: float(v)) if kind == 5126 else (lambda v: int(v))
-        acc["min"] = [as_json(v) for v in stored.min(axis=0)]
-        acc["max"] = [as_json(v) for v in stored.max(axis=0)]
-    return view["buffer"]
+    as_json = (lambda v: json.dumps(float(v))) if kind == 5126 else (lambda v: str(int(v)))
+    return view["buffer"], {"min": [as_json(v) for v in stored.min(axis=0)],
+                            "max": [as_json(v) for v in stored.max(axis=0)]}
+
+
+# Byte spans in the JSON text.  The text was parsed whole before, so it is valid JSON: the scanner
+# only steps over whitespace and punctuation and lets the decoder measure each value.
+_DECODER = json.JSONDecoder()
+
+
+def _skip(text, at):
+    while text[at] in " \t\n\r":
+        at += 1
+    return at
+
+
+def _members(text, at):
+    """{key: (start, end)} of the value of each member of the JSON object at ``text[at]`` ('{').
+
+    A key given twice keeps its last value, as the parser does.
+    """
+    out, at = {}, _skip(text, at + 1)
+    while text[at] != "}":
+        key, at = _DECODER.raw_decode(text, at)
+        start = _skip(text, _skip(text, at) + 1)        # past the ':'
+        _, end = _DECODER.raw_decode(text, start)
+        out[key] = (start, end)
+        at = _skip(text, end)
+        if text[at] == ",":
+            at = _skip(text, at + 1)
+    return out
+
+
+def _items(text, at):
+    """[(start, end)] of each element of the JSON array at ``text[at]`` ('[')."""
+    out, at = [], _skip(text, at + 1)
+    while text[at] != "]":
+        _, end = _DECODER.raw_decode(text, at)
+        out.append((at, end))
+        at = _skip(text, end)
+        if text[at] == ",":
+            at = _skip(text, at + 1)
+    return out
+
+
+def _element(text, key, index):
+    """{key: (start, end)} of the members of object ``index`` of the top-level array ``key``."""
+    top = _members(text, _skip(text, 0))
+    return _members(text, _items(text, top[key][0])[index][0])
+
+
+def _bound_edits(text, bounds):
+    """(start, end, new text) of each number of the changed accessors' ``min`` and ``max``.
+
+    Each number is replaced where it stands, the spacing between them kept; an
+    array that does not hold three numbers is written again whole.
+    """
+    if not bounds:
+        return []
+    top = _members(text, _skip(text, 0))
+    accessors = _items(text, top["accessors"][0])
+    edits = []
+    for acc, values in bounds.items():
+        spans = _members(text, accessors[acc][0])
+        for key in ("min", "max"):
+            if key not in spans:
+                continue
+            start, end = spans[key]
+            numbers = _items(text, start) if text[start] == "[" else []
+            if len(numbers) == len(values[key]):
+                edits += [(a, b, v) for (a, b), v in zip(numbers, values[key])]
+            else:
+                edits.append((start, end, "[" + ",".join(values[key]) + "]"))
+    return edits
+
+
+def _uri_edits(gltf, text, buffers, changed):
+    """(start, end, new text) of the URI of each changed buffer that has one: its bytes as base64.
+
+    A data URI keeps its own media type and its decoded length; a file
+    beside the original becomes a data URI of its declared length.
+    """
+    edits = []
+    for i in sorted(changed):
+        spec = gltf.doc["buffers"][i]
+        if "uri" not in spec:
+            continue                                    # the GLB's BIN chunk
+        start, end = _element(text, "buffers", i)["uri"]
+        raw = text[start:end]
+        if spec["uri"].startswith("data:"):
+            data, prefix = bytes(buffers[i]), spec["uri"].split(",", 1)[0] + ","
+        else:
+            data, prefix = bytes(buffers[i][:int(spec["byteLength"])]), "data:application/octet-stream;base64,"
+        comma = raw.find(",")
+        if spec["uri"].startswith("data:") and comma > 0 and json.loads(raw[:comma + 1] + '"') == prefix:
+            new = raw[:comma + 1] + base64.b64encode(data).decode("ascii") + '"'   # the prefix as spelled
+        else:
+            new = json.dumps(prefix + base64.b64encode(data).decode("ascii"))
+        edits.append((start, end, new))
+    return edits
+
+
+def _splice(text, edits):
+    """``text`` with each (start, end, new) span replaced; the spans do not overlap."""
+    parts, at = [], 0
+    for start, end, new in sorted(edits):
+        parts += [text[at:start], new]
+        at = end
+    return "".join(parts + [text[at:]])
+
+
+def _glb_patched(gltf, text, buffers, changed):
+    """The original GLB with its JSON chunk replaced by ``text`` and its BIN chunk data by buffer 0.
+
+    The JSON chunk keeps its trailing spaces while they keep it 4-byte
+    aligned, else it is padded again with the fewest spaces; every chunk
+    after it (headers, data, padding) is kept byte for byte but the BIN
+    data's POSITION bytes.
+    """
+    if len(text) % 4:
+        text = text.rstrip(b" ")
+        text += b" " * (-len(text) % 4)
+    source = gltf.source
+    length = struct.unpack_from("<I", source, 12)[0]
+    rest = bytearray(source[20 + length + (-length % 4):])
+    if gltf.bin_at is not None:
+        for i in changed:
+            if "uri" not in gltf.doc["buffers"][i]:
+                at = gltf.bin_at - (20 + length + (-length % 4))
+                rest[at:at + len(buffers[i])] = buffers[i]
+    body = struct.pack("<II", len(text), _JSON_CHUNK) + text + bytes(rest)
+    return source[:8] + struct.pack("<I", 12 + len(body)) + body
 
 
 def _glb(doc, buffers):
-    """GLB bytes: the JSON chunk (space padded), the BIN chunk (zero padded) as it was."""
+    """A new GLB's bytes: the JSON chunk (space padded), the BIN chunk (zero padded)."""
     text = json.dumps(doc, separators=(",", ":"), ensure_ascii=False).encode("utf-8")
     text += b" " * (-len(text) % 4)
     body = struct.pack("<II", len(text), _JSON_CHUNK) + text
@@ -512,14 +663,6 @@ def _glb(doc, buffers):
         blob += b"\0" * (-len(blob) % 4)
         body += struct.pack("<II", len(blob), _BIN_CHUNK) + blob
     return _GLB_MAGIC + struct.pack("<II", 2, 12 + len(body)) + body
-
-
-def _gltf_text(gltf, doc, buffers, changed):
-    """``.gltf`` bytes: the changed buffers as base64 data URIs, every other URI as it was."""
-    for i in changed:
-        encoded = base64.b64encode(bytes(buffers[i][:doc["buffers"][i]["byteLength"]])).decode()
-        doc["buffers"][i]["uri"] = "data:application/octet-stream;base64," + encoded
-    return (json.dumps(doc, indent=2, ensure_ascii=False) + "\n").encode("utf-8")
 
 
 def glb_from_mesh(points, faces=None):

@@ -1,11 +1,14 @@
 """glTF and GLB: positions moved in place, every other byte kept, refusals named, the validator content.
 
 Each file is read, its points moved by a known small displacement, written
-and read back.  Outside the POSITION accessors' bytes the buffers are
-identical byte for byte, and the JSON holds the same values but for the
-POSITION ``min``/``max``.  Generated files cover a mesh on two nodes, an
-external ``.bin``, a skin, a morph target, interleaved vertices, one buffer
-view shared by two attributes and KHR_mesh_quantization.
+and read back, and compared byte for byte: the JSON text outside the
+POSITION accessors' ``min``/``max`` arrays (and a changed buffer's URI), each
+buffer outside the POSITION bytes, and a GLB's header and chunks but for the
+lengths.  Generated files cover a mesh on two nodes, an external ``.bin``, a
+skin, a morph target, interleaved vertices, one buffer view shared by two
+attributes, KHR_mesh_quantization, and hand-spelled JSON (indented, odd
+number spellings, non-ASCII text, ``min``/``max`` keys in extras, a data
+URI's own media type, a GLB with extra padding and an unknown chunk).
 """
 
 from __future__ import annotations
@@ -115,8 +118,31 @@ def _write_glb(path, doc, blob):
     return path
 
 
+def _spelled(doc):
+    """JSON text no serialiser writes: indented, numbers spelled oddly, non-ASCII, min/max in extras."""
+    doc["asset"]["generator"] = "pointmark tésts ✓"
+    doc["accessors"][1]["extras"] = {"min": [9, 9, 9], "max": [9, 9, 9], "note": "\"min\": [0]"}
+    doc["extras"] = {"accessors": [{"min": [1, 2, 3]}]}
+    text = json.dumps(doc, indent=3, ensure_ascii=False)
+    return text.replace("[\n            1.0,\n            2.0,\n            3.0\n         ]", "[1E0, 2.00,3]")
+
+
 def make(tmp_path, kind):
-    doc, blob = generated("plain" if kind in ("external", "embedded") else kind)
+    doc, blob = generated("plain" if kind in ("external", "embedded", "spelled", "spelled-glb") else kind)
+    if kind == "spelled":
+        doc["buffers"][0]["uri"] = "data:application/gltf-buffer;base64," + base64.b64encode(blob).decode()
+        path = tmp_path / f"{kind}.gltf"
+        path.write_bytes(_spelled(doc).encode("utf-8") + b"\n\n")
+        return path
+    if kind == "spelled-glb":                  # 7 spaces past the JSON, an unknown chunk after the BIN
+        text = _spelled(doc).encode("utf-8") + b"\n"
+        text += b" " * (-len(text) % 4 + 4)
+        chunks = [struct.pack("<II", len(text), 0x4E4F534A) + text, struct.pack("<II", len(blob), 0x004E4942) + blob,
+                  struct.pack("<II", 8, 0x12345678) + b"extra!\0\0"]
+        body = b"".join(chunks)
+        path = tmp_path / f"{kind}.glb"
+        path.write_bytes(b"glTF" + struct.pack("<II", 2, 12 + len(body)) + body)
+        return path
     if kind == "external":
         (tmp_path / "data.bin").write_bytes(blob)
         doc["buffers"][0]["uri"] = "data.bin"
@@ -145,14 +171,101 @@ def _position_ranges(gltf):
     return masks
 
 
-def _without_bounds(gltf):
-    doc = json.loads(json.dumps(gltf.doc))
-    for s in gltf.slots:
-        acc = doc["accessors"][s.accessor]
-        acc.pop("min", None), acc.pop("max", None)
-    for b in doc.get("buffers", []):
-        b.pop("uri", None)
-    return doc
+def _spans(text, at=0, path=(), out=None):
+    """{path: (start, end)} of every value in the JSON text, found by a scanner of the test's own."""
+    out = {} if out is None else out
+    decoder = json.JSONDecoder()
+
+    def skip(i):
+        while text[i] in " \t\r\n":
+            i += 1
+        return i
+
+    start = at = skip(at)
+    if text[at] in "{[":
+        close, k = "}" if text[at] == "{" else "]", 0
+        at = skip(at + 1)
+        while text[at] != close:
+            if close == "}":
+                key, at = decoder.raw_decode(text, at)
+                at = skip(skip(at) + 1)
+            else:
+                key, k = k, k + 1
+            at = skip(_spans(text, at, path + (key,), out)[path + (key,)][1])
+            if text[at] == ",":
+                at = skip(at + 1)
+        end = at + 1
+    else:
+        end = decoder.raw_decode(text, at)[1]
+    out[path] = (start, end)
+    return out
+
+
+def _outside(text, spans):
+    """The pieces of ``text`` between the given (start, end) spans."""
+    pieces, at = [], 0
+    for start, end in sorted(spans):
+        pieces.append(text[at:start])
+        at = end
+    return pieces + [text[at:]]
+
+
+def _stored(gltf, index):
+    """(count, 3) POSITION values of accessor ``index`` as stored."""
+    acc = gltf.doc["accessors"][index]
+    view = gltf.doc["bufferViews"][acc["bufferView"]]
+    dtype = np.dtype({5126: "<f4", 5122: "<i2", 5123: "<u2", 5120: "i1", 5121: "u1"}[acc["componentType"]])
+    start = view.get("byteOffset", 0) + acc.get("byteOffset", 0)
+    return np.ndarray((acc["count"], 3), dtype=dtype, buffer=gltf.buffers[view["buffer"]], offset=start,
+                      strides=(view.get("byteStride") or 3 * dtype.itemsize, dtype.itemsize))
+
+
+def _json_and_rest(raw, glb):
+    """(JSON text, the bytes after the JSON chunk) of a file, checking a GLB's header and JSON chunk."""
+    if not glb:
+        return raw.decode("utf-8"), b""
+    length = struct.unpack_from("<I", raw, 12)[0]
+    assert struct.unpack_from("<I", raw, 8)[0] == len(raw) and len(raw) % 4 == 0 and length % 4 == 0
+    return raw[20:20 + length].decode("utf-8"), raw[20 + length:]
+
+
+def assert_same_bytes(source, target, before, after):
+    """Every byte of ``target`` but POSITION data, its min/max and a changed buffer's URI is ``source``'s."""
+    old_raw, new_raw = source.read_bytes(), target.read_bytes()
+    glb = before.container == "glb"
+    old_text, old_rest = _json_and_rest(old_raw, glb)
+    new_text, new_rest = _json_and_rest(new_raw, glb)
+    if glb:                                    # magic, version and the JSON chunk's type
+        assert new_raw[:8] == old_raw[:8] and new_raw[16:20] == old_raw[16:20]
+    masks = _position_ranges(before)
+    accessors = sorted({s.accessor for s in before.slots})
+    changed = {before.doc["accessors"][a]["bufferView"] for a in accessors}
+    changed = {before.doc["bufferViews"][v]["buffer"] for v in changed}
+    keys = [("accessors", a, k) for a in accessors for k in ("min", "max") if k in before.doc["accessors"][a]]
+    keys += [("buffers", b, "uri") for b in changed if "uri" in before.doc["buffers"][b]]
+    old_spans, new_spans = _spans(old_text), _spans(new_text)
+    old_pieces = _outside(old_text, [old_spans[k] for k in keys])
+    new_pieces = _outside(new_text, [new_spans[k] for k in keys])
+    old_pieces[-1], new_pieces[-1] = old_pieces[-1].rstrip(" "), new_pieces[-1].rstrip(" ")  # GLB padding
+    assert new_pieces == old_pieces, "the JSON text changed outside POSITION min/max"
+    digits = str.maketrans("", "", "-+.0123456789eE")
+    for key in keys[:2 * len(accessors)]:      # min/max: the numbers of the data, the spacing kept
+        (a, b), (c, d) = old_spans[key], new_spans[key]
+        assert new_text[c:d].translate(digits) == old_text[a:b].translate(digits)
+        values = getattr(_stored(after, key[1]), key[2])(axis=0).tolist()
+        assert json.loads(new_text[c:d]) == values
+    assert len(new_rest) == len(old_rest)      # the chunks after the JSON: headers and data
+    rest_mask = np.zeros(len(old_rest), dtype=bool)
+    if before.bin_at is not None and 0 in masks and "uri" not in before.doc["buffers"][0]:
+        at = before.bin_at - (len(old_raw) - len(old_rest))
+        rest_mask[at:at + len(masks[0])] = masks[0]
+    old, new = np.frombuffer(old_rest, np.uint8), np.frombuffer(new_rest, np.uint8)
+    assert np.array_equal(old[~rest_mask], new[~rest_mask]), "GLB bytes after the JSON chunk changed"
+    for i, mask in masks.items():              # each buffer, the data URIs' and external files' too
+        old, new = np.frombuffer(before.buffers[i], np.uint8), np.frombuffer(after.buffers[i], np.uint8)
+        assert len(old) == len(new)
+        assert np.array_equal(old[~mask], new[~mask]), f"buffer {i}: bytes outside POSITION changed"
+        assert mask.sum() == 0 or not np.array_equal(old[mask], new[mask])
 
 
 def round_trip(source, target, sigma=1e-3):
@@ -162,15 +275,17 @@ def round_trip(source, target, sigma=1e-3):
     moved = cloud.points + np.random.default_rng(1).normal(scale=sigma * diag, size=cloud.points.shape)
     write_points(cloud, moved, target)
     back = read_points(target)
-    before, after = cloud.native, back.native
-    assert _without_bounds(after) == _without_bounds(before)
-    for i, mask in _position_ranges(before).items():
-        old, new = np.frombuffer(before.buffers[i], np.uint8), np.frombuffer(after.buffers[i], np.uint8)
-        assert len(old) == len(new)
-        assert np.array_equal(old[~mask], new[~mask]), f"buffer {i}: bytes outside POSITION changed"
-        assert mask.sum() == 0 or not np.array_equal(old[mask], new[mask])
+    assert_same_bytes(source, target, cloud.native, back.native)
     assert back.points.shape == cloud.points.shape
     return cloud, moved, back
+
+
+def test_a_write_that_moves_nothing_gives_the_original_bytes(tmp_path):
+    source = tmp_path / "m.glb"
+    source.write_bytes(glb_from_mesh(*_grid()))
+    cloud = read_points(source, distinct=True)
+    write_points(cloud, cloud.points, tmp_path / "out.glb")
+    assert (tmp_path / "out.glb").read_bytes() == source.read_bytes()
 
 
 @pytest.mark.parametrize("name", REAL)
@@ -197,7 +312,8 @@ def test_a_mesh_on_seven_nodes_gives_one_point_set_per_instance(shared_data):
     assert len(gltf.slots) == 7 and len(set(accessors)) == 6
 
 
-KINDS = ["plain", "instanced", "external", "embedded", "skinned", "morph", "interleaved", "shared-view", "quantized"]
+KINDS = ["plain", "instanced", "external", "embedded", "skinned", "morph", "interleaved", "shared-view", "quantized",
+         "spelled", "spelled-glb"]
 
 
 @pytest.mark.parametrize("kind", KINDS)
@@ -207,9 +323,10 @@ def test_generated_files_keep_every_other_byte(tmp_path, kind):
     step = 1.5 / 32767 if kind == "quantized" else 1e-6
     if kind != "instanced":
         assert np.abs(back.points - moved).max() < 2 * step
-    if kind == "external":                     # the original's .bin is untouched; the copy embeds its buffer
+    if kind in ("external", "spelled"):        # the original's .bin is untouched; the copy embeds its buffer
         text = json.loads((tmp_path / "out" / "copy.gltf").read_text())
-        assert text["buffers"][0]["uri"].startswith("data:application/octet-stream;base64,")
+        media = "gltf-buffer" if kind == "spelled" else "octet-stream"
+        assert text["buffers"][0]["uri"].startswith(f"data:application/{media};base64,")
 
 
 def test_world_space_transforms_instances_and_bind_pose(tmp_path):
