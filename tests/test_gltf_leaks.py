@@ -8,12 +8,9 @@ import importlib.util
 
 import pytest
 
-from pipeline.io import gltf_tools
 from tests.conftest import ROOT
 
-pytestmark = [pytest.mark.slow,
-              pytest.mark.skipif(not gltf_tools.tools_available(),
-                                 reason="node and gltf-transform not installed (make setup)")]
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("node_tools")]   # fails under CI=true without them
 
 
 def _bench():

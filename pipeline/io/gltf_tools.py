@@ -74,7 +74,7 @@ def validate(path):
         Severity 0 error, 1 warning, 2 info, 3 hint.
     """
     if not tools_available():
-        raise ToolError("gltf-validator is not installed (run `make setup`, which needs node and npm)")
+        raise ToolError("gltf-validator is not installed (run `make setup`, which installs node and npm where missing)")
     out = _run(["node", "-e", _VALIDATE, str(node_modules() / "gltf-validator"), str(path)], "gltf-validator")
     report = json.loads(out)
     return [(m["code"], int(m["severity"]), m.get("pointer", "")) for m in report["issues"]["messages"]]
@@ -107,7 +107,7 @@ def file_attack(source, target, name, strength=None):
     if args is None:
         return _convert(source, target)
     if not tools_available():
-        raise ToolError(f"{name}: gltf-transform is not installed (run `make setup`, which needs node and npm)")
+        raise ToolError(f"{name}: gltf-transform is not installed (run `make setup`, which installs node and npm where missing)")
     s = default if strength is None else strength
     s = int(s) if name == "gltf-draco" else s
     command = [str(node_modules() / ".bin" / "gltf-transform"), args[0], str(source), str(target),
