@@ -68,8 +68,12 @@ def meshed_scan(path, target):
     return target
 
 
-def build(tmp, assets, watermark):
-    """Catalogue ``assets`` {name: GLB path} in ``tmp``, issue copies; returns the scan config's path."""
+def build(tmp, assets, watermark, *, serial=False, dask=None):
+    """Catalogue ``assets`` {name: GLB path} in ``tmp``, issue copies; returns the scan config's path.
+
+    ``serial`` embeds in this process, without a Dask cluster (a test's few copies); ``dask``
+    overrides the config's dask section (a test's cluster of its own).
+    """
     (tmp / "assets").mkdir(parents=True, exist_ok=True)
     for name, path in assets.items():
         target = tmp / "assets" / f"{name}.glb"
@@ -84,13 +88,13 @@ def build(tmp, assets, watermark):
         "watermark": watermark,
         "scan": {"suspects": str(tmp / "suspects"), "catalogue": str(tmp / "catalog.parquet"),
                  "out": str(tmp / "scan"), "top_k": 2},
-        "dask": {"n_workers": 2, "progress": "none"},
+        "dask": {"n_workers": 2, "progress": "none", **(dask or {})},
     }
     (tmp / "key").write_text(SECRET)
     (tmp / "scan.yaml").write_text(yaml.safe_dump(cfg_dict))
     cfg = config.load_config(tmp / "scan.yaml")
     job = plan_job(cfg, SECRET.encode())
-    counts = run_job(job, cfg, progress=Progress())
+    counts = run_job(job, cfg, serial=serial, progress=Progress())
     if counts["failed"]:
         raise RuntimeError(f"the catalogue run failed for {counts['failed']} copies")
     return tmp / "scan.yaml"
@@ -114,11 +118,19 @@ def leak(tmp, assets, attacks):
     return truth
 
 
-def scan(tmp, cfg_path, truth):
-    """Run ``pointmark scan``; one row per leak: verdict, who is named, score and threshold."""
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
-    subprocess.run([sys.executable, "-m", "pipeline.cli", "scan", str(cfg_path)], cwd=tmp, env=env,
-                   capture_output=True, text=True, timeout=3600, check=False)
+def scan(tmp, cfg_path, truth, *, in_process=False):
+    """Run ``pointmark scan``; one row per leak: verdict, who is named, score and threshold.
+
+    ``in_process`` calls the command line's ``main`` here (a test: its imports are already loaded).
+    """
+    if in_process:
+        from pipeline.cli import main as pointmark
+
+        pointmark(["scan", str(cfg_path)])
+    else:
+        env = dict(os.environ, PYTHONPATH=str(ROOT))
+        subprocess.run([sys.executable, "-m", "pipeline.cli", "scan", str(cfg_path)], cwd=tmp, env=env,
+                       capture_output=True, text=True, timeout=3600, check=False)
     latest = {Path(r["suspect_path"]).stem: r for r in sorted(read_scan(tmp / "scan"),
                                                               key=lambda r: r["scanned_at"])}
     rows = []

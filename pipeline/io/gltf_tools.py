@@ -17,7 +17,7 @@ import shutil
 import subprocess
 from pathlib import Path
 
-__all__ = ["node_modules", "tools_available", "validate", "file_attack", "FILE_ATTACKS", "ToolError",
+__all__ = ["node_modules", "tools_available", "validate", "validate_all", "file_attack", "FILE_ATTACKS", "ToolError",
            "attack_suffix"]
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -53,15 +53,17 @@ def tools_available():
         and (modules / "gltf-validator").is_dir()
 
 
+# one node process for every file (its start-up is most of a small file's time): one report per file, in order
 _VALIDATE = """
 const fs = require('fs'); const path = require('path');
 const validator = require(process.argv[1]);
-const file = process.argv[2];
-validator.validateBytes(new Uint8Array(fs.readFileSync(file)), {
+const one = (file) => validator.validateBytes(new Uint8Array(fs.readFileSync(file)), {
   maxIssues: 0, externalResourceFunction: (uri) => new Promise((ok, fail) => {
     fs.readFile(path.resolve(path.dirname(file), decodeURIComponent(uri)), (e, d) => e ? fail(e) : ok(new Uint8Array(d)));
   })
-}).then((r) => process.stdout.write(JSON.stringify(r))).catch((e) => { console.error(String(e)); process.exit(1); });
+});
+(async () => { const out = []; for (const file of process.argv.slice(2)) out.push(await one(file)); return out; })()
+  .then((r) => process.stdout.write(JSON.stringify(r))).catch((e) => { console.error(String(e)); process.exit(1); });
 """
 
 
@@ -73,11 +75,19 @@ def validate(path):
     list of (code, severity, pointer)
         Severity 0 error, 1 warning, 2 info, 3 hint.
     """
+    return validate_all([path])[0]
+
+
+def validate_all(paths):
+    """:func:`validate` on each of ``paths`` in one node process; one list of issues per path, in order."""
     if not tools_available():
         raise ToolError("gltf-validator is not installed (run `make setup`, which installs node and npm where missing)")
-    out = _run(["node", "-e", _VALIDATE, str(node_modules() / "gltf-validator"), str(path)], "gltf-validator")
-    report = json.loads(out)
-    return [(m["code"], int(m["severity"]), m.get("pointer", "")) for m in report["issues"]["messages"]]
+    paths = [str(p) for p in paths]
+    if not paths:
+        return []
+    out = _run(["node", "-e", _VALIDATE, str(node_modules() / "gltf-validator"), *paths], "gltf-validator")
+    return [[(m["code"], int(m["severity"]), m.get("pointer", "")) for m in report["issues"]["messages"]]
+            for report in json.loads(out)]
 
 
 def attack_suffix(name):
