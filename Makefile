@@ -3,6 +3,7 @@
 VENV    := .venv
 PY      := $(VENV)/bin/python
 STAMP   := $(VENV)/.installed
+NPM_STAMP := node_modules/.installed
 SUDO    := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 DEBS    := libusb-1.0-0 libgomp1
 
@@ -19,7 +20,19 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q -e ".[test]"
 	@touch $(STAMP)
 
-setup: $(STAMP)
+# glTF Transform's CLI and the Khronos validator (package.json) for the glTF attacks and tests;
+# Debian's nodejs and npm are installed first where npm is missing.
+$(NPM_STAMP): package.json
+	@if ! command -v npm >/dev/null 2>&1; then \
+	  echo "installing Debian packages: nodejs npm"; \
+	  $(SUDO) apt-get update -qq && $(SUDO) env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq nodejs npm; \
+	fi
+	@major=$$(node -p 'process.versions.node.split(".")[0]'); [ "$$major" -ge 20 ] || \
+	  echo "note: node $$major is older than the 20 that @gltf-transform/cli declares"
+	npm install --no-audit --no-fund --loglevel=error
+	@touch $(NPM_STAMP)
+
+setup: $(STAMP) $(NPM_STAMP)
 
 demo: setup
 	$(VENV)/bin/pointmark demo
@@ -40,4 +53,4 @@ schema: setup
 	$(VENV)/bin/pointmark schema > configs/schema.json
 
 clean:
-	rm -rf $(VENV) catalog/demo out .pytest_cache
+	rm -rf $(VENV) node_modules catalog/demo out .pytest_cache

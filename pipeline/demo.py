@@ -93,6 +93,7 @@ DEMO_ASSETS = {
     "blob-c": ("blob", 8000, 6, "ply-ascii"),
     "torus-b": ("torus", 9000, 7, "pts"),
     "terrain-b": ("terrain", 11000, 8, "ply"),
+    "blob-d": ("blob", 9000, 9, "glb"),
 }
 
 
@@ -108,8 +109,25 @@ def write_demo_catalogue(folder, *, assets=None, scale=100.0):
     paths = []
     for name, (kind, n, seed, fmt) in (assets or DEMO_ASSETS).items():
         points = procedural_shape(kind, n, seed=seed) * scale
-        paths.append(write_array(folder, name, points, fmt))
+        write = _write_glb_mesh if fmt == "glb" else write_array
+        paths.append(write(folder, name, points, fmt))
     return paths
+
+
+def _write_glb_mesh(folder, name, points, fmt="glb"):
+    """A blob as a GLB mesh: triangles of the hull of its directions (a blob is star-shaped)."""
+    from pathlib import Path
+
+    from scipy.spatial import ConvexHull
+
+    from .io.gltf import glb_from_mesh
+    from .io.pointcloud import atomic_write_bytes
+
+    path = Path(folder) / f"{name}.{fmt}"
+    if not path.exists():
+        directions = points / np.linalg.norm(points, axis=1, keepdims=True)
+        atomic_write_bytes(path, glb_from_mesh(points, ConvexHull(directions).simplices))
+    return path
 
 
 DEMO_SECRET_NOTE = (
@@ -178,7 +196,9 @@ def run_demo(folder, config_path):
 LEAKS = [("blob-b", "press-c", [("crop", 0.5), ("random_similarity", None)], "cropped to half, rotated and rescaled"),
          ("shell-a", "market-b", [("noise", 0.003)], "with noise of 0.3 % added"),
          ("blob-a", "studio-a", [("random_similarity", None), ("clutter", 3.0)],
-          "rotated, rescaled and placed in a scene of three times its points")]
+          "rotated, rescaled and placed in a scene of three times its points"),
+         ("blob-d", "market-b", [("random_similarity", None), ("quantize", 12)],
+          "a GLB copy rotated, rescaled and quantised to 12 bits")]
 
 
 def _leak_scan(folder, cfg, secret, issued):

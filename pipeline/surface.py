@@ -1,13 +1,16 @@
-"""Surface attacks that need open3d: resampling and mesh simplification.
+"""Surface attacks that need open3d (resampling, mesh simplification) or an external tool (glTF's).
 
-Kept out of :mod:`pipeline.kernels` (which is pure NumPy/SciPy).  Both are
-seeded: open3d's global generator is seeded from the given ``rng``.
+Kept out of :mod:`pipeline.kernels` (which is pure NumPy/SciPy).  The open3d
+ones are seeded: open3d's global generator is seeded from the given ``rng``.
+The ``gltf-*`` attacks write the points (and faces) as a GLB, run the tool
+of :mod:`pipeline.io.gltf_tools` on it and read back what it wrote.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from .io.gltf_tools import FILE_ATTACKS
 from .kernels import attacks
 
 __all__ = ["resample", "simplify", "apply_chain", "ATTACK_NAMES", "parse_attack"]
@@ -88,7 +91,24 @@ def simplify(points, n_vertices, rng=None, *, faces):
     return np.asarray(small.vertices).copy()
 
 
-ATTACK_NAMES = sorted([*attacks.ATTACKS, "resample", "simplify"])
+ATTACK_NAMES = sorted([*attacks.ATTACKS, "resample", "simplify", *FILE_ATTACKS])
+
+
+def file_attack(points, faces, name, strength=None):
+    """A glTF tool's attack on points and faces: ((m, 3) float, (g, 3) int faces) of what it wrote."""
+    import tempfile
+    from pathlib import Path
+
+    from .io.gltf import glb_from_mesh
+    from .io.gltf_tools import attack_suffix
+    from .io.gltf_tools import file_attack as run_tool
+    from .io.pointcloud import read_points
+
+    with tempfile.TemporaryDirectory(prefix="pointmark-gltf-") as folder:
+        source = Path(folder) / "in.glb"
+        source.write_bytes(glb_from_mesh(points, faces))
+        cloud = read_points(run_tool(source, Path(folder) / f"out{attack_suffix(name)}", name, strength))
+        return cloud.points, cloud.faces()
 
 
 def parse_attack(text):
@@ -96,6 +116,8 @@ def parse_attack(text):
     name, _, value = text.partition(":")
     if name not in ATTACK_NAMES:
         raise ValueError(f"unknown attack {name!r}; known: {', '.join(ATTACK_NAMES)}")
+    if name in FILE_ATTACKS:
+        return name, float(value) if value else FILE_ATTACKS[name][1]
     if not value:
         return name, attacks.check_strength(name, None)
     try:
@@ -114,7 +136,7 @@ def apply_chain(points, chain, rng=None, *, faces=None):
     chain : list of (name, strength or None)
     rng : int or numpy.random.Generator
     faces : (f, 3) int, optional
-        Needed by ``simplify`` (only as the chain's first step).
+        Needed by ``simplify`` (the first step, or after a ``gltf-`` step); ``gltf-`` steps keep a mesh.
 
     Returns
     -------
@@ -122,12 +144,16 @@ def apply_chain(points, chain, rng=None, *, faces=None):
     """
     rng = np.random.default_rng(rng)
     for i, (name, strength) in enumerate(chain):
+        if name in FILE_ATTACKS:          # what the tool wrote has faces: a later simplify may use them
+            points, faces = file_attack(points, faces, name, strength)
+            continue
         if name == "resample":
             points = resample(points, int(strength), rng)
         elif name == "simplify":
-            if i != 0:
-                raise ValueError("simplify must come first: later steps lose the faces")
+            if faces is None or (i and chain[i - 1][0] not in FILE_ATTACKS):
+                raise ValueError("simplify must come first (or after a gltf- attack): later steps lose the faces")
             points = simplify(points, int(strength), rng, faces=faces)
         else:
             points = attacks.apply_chain(points, [(name, strength)], rng)
+        faces = None
     return points

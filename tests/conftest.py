@@ -28,6 +28,19 @@ def shared_data():
 
 
 @pytest.fixture(scope="session")
+def node_tools():
+    """node, glTF Transform's CLI and the Khronos validator (``make setup``); fails under CI=true without them."""
+    from pipeline.io import gltf_tools
+
+    if not gltf_tools.tools_available():
+        message = (f"node, gltf-transform and gltf-validator not found (node_modules at {gltf_tools.node_modules()}; "
+                   "run make setup)")
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(message + "; CI must have them")
+        pytest.skip(message)
+
+
+@pytest.fixture(scope="session")
 def bunny_path(shared_data):
     return shared_data / "models" / "bunny_zipper_faceref_34834.ply"
 

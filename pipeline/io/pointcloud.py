@@ -2,8 +2,9 @@
 
 PLY through :mod:`pipeline.io.ply` (every vertex property kept), PCD
 through :mod:`pipeline.io.pcd` (every field, its type and the encoding kept),
-XYZ and PTS through :mod:`pipeline.io.text` and OBJ through
-:mod:`pipeline.io.obj` (only coordinate tokens rewritten), LAS and LAZ
+XYZ and PTS through :mod:`pipeline.io.text`, OBJ through
+:mod:`pipeline.io.obj` (only coordinate tokens rewritten), glTF and GLB
+through :mod:`pipeline.io.gltf` (only POSITION bytes rewritten), LAS and LAZ
 through laspy (header scale and offset and every point record kept).
 Coordinates come back as float64 in the file's own frame, in file order.
 Writes go to a temporary name in the target folder and are renamed into
@@ -26,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import gltf as gltf_io
 from . import pcd as pcd_io
 from . import ply as ply_io
 from .obj import obj_from_points, read_obj, write_obj
@@ -40,10 +42,12 @@ __all__ = ["PointCloud", "InputError", "WriteError", "read_points", "read_coordi
            "atomic_write_bytes", "sha256_file", "FORMATS"]
 
 FORMATS = {".ply": "ply", ".pcd": "pcd", ".xyz": "xyz", ".pts": "pts", ".las": "las", ".laz": "laz",
-           ".obj": "obj"}
+           ".obj": "obj", ".glb": "glb", ".gltf": "gltf"}
 _READERS = {"pcd": read_pcd, "xyz": read_xyz, "pts": read_pts, "obj": read_obj}
-_WRITERS = {"pcd": write_pcd, "xyz": write_text, "pts": write_text, "obj": write_obj}
-_NEW_FILES = {"pcd": pcd_from_points, "xyz": xyz_from_points, "pts": pts_from_points, "obj": obj_from_points}
+_WRITERS = {"pcd": write_pcd, "xyz": write_text, "pts": write_text, "obj": write_obj,
+            "glb": gltf_io.write_gltf, "gltf": gltf_io.write_gltf}
+_NEW_FILES = {"pcd": pcd_from_points, "xyz": xyz_from_points, "pts": pts_from_points, "obj": obj_from_points,
+              "glb": gltf_io.glb_from_points}
 
 
 class InputError(ValueError):
@@ -68,7 +72,7 @@ class PointCloud:
     path : pathlib.Path
     format : str
     native : object
-        PlyData, PcdData, TextTable (XYZ, PTS), ObjData or laspy.LasData.
+        PlyData, PcdData, TextTable (XYZ, PTS), ObjData, GltfData or laspy.LasData.
     """
 
     points: np.ndarray
@@ -77,8 +81,8 @@ class PointCloud:
     native: object
 
     def faces(self):
-        """(f, 3) int triangles when the file is a PLY or OBJ mesh, else empty."""
-        if self.format in ("ply", "obj"):
+        """(f, 3) int triangles when the file is a PLY, OBJ or glTF mesh, else empty."""
+        if self.format in ("ply", "obj", "glb", "gltf"):
             return self.native.faces()
         return np.zeros((0, 3), dtype=np.int64)
 
@@ -178,7 +182,8 @@ def read_points(path, *, distinct=False):
         points repeat another (what :func:`check_distinct` refuses), in a
         text body's checking pass when few distinct points make the count
         exact: such a file is refused in bounded memory.  For originals to
-        watermark; a suspect may repeat points (a quantised leak).
+        watermark; a suspect may repeat points (a quantised leak).  A glTF
+        original that cannot be written back (Draco, meshopt) is refused too.
 
     Returns
     -------
@@ -197,6 +202,9 @@ def read_points(path, *, distinct=False):
             _check_head(fmt, f.read(HEAD_BYTES), size)
             if fmt in ("las", "laz"):
                 native, points = _read_las(path)
+            elif fmt in ("glb", "gltf"):
+                native = gltf_io.read_gltf(f, path, original=distinct)
+                points = native.points
             else:
                 with refusing_repeats(MAX_REPEATED_SHARE) if distinct else contextlib.nullcontext():
                     native = read_ply(f) if fmt == "ply" else _READERS[fmt](f)  # text: checked block by block
@@ -232,6 +240,8 @@ def _check_head(fmt, head, size):
         pcd_io.check_head(head, size)
     elif fmt in ("xyz", "pts", "obj"):
         check_text(head)
+    elif fmt in ("glb", "gltf"):
+        gltf_io.check_head(fmt, head, size)
     elif head[:4] != b"LASF":
         raise ValueError("not a LAS/LAZ file (no 'LASF' signature)")
 
