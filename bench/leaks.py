@@ -62,18 +62,15 @@ def build_catalogue(work):
 
     assets = work / "assets"
     assets.mkdir(parents=True, exist_ok=True)
-    for path in sorted((DATA / "models").glob("*.ply")):
-        if path.stem == "lidar_autzen_trim_110000":
-            continue
-        link = assets / path.name
-        if not link.exists():
-            link.symlink_to(path.resolve())
     shapes = _procedural(14, 0)
     for name in sorted(shapes)[:4]:
         shapes[f"{name}-bent"] = _bend(shapes[name])
     for name, points in shapes.items():
         write_array(assets, name, points, "ply")
-    rows = [catalogue_record(a) for a in discover_assets(assets, default_recipients=RECIPIENTS)]
+    # the real scans are catalogued where they are (never copied; a link out of a folder is not read)
+    real = [a for a in discover_assets(DATA / "models", default_recipients=RECIPIENTS)
+            if a.key != "lidar_autzen_trim_110000"]
+    rows = [catalogue_record(a) for a in real + discover_assets(assets, default_recipients=RECIPIENTS)]
     bad = [r for r in rows if r["status"] != "ok"]
     if bad:
         raise SystemExit(f"unusable assets: {[(r['asset_key'], r['error']) for r in bad]}")

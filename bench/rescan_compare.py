@@ -21,7 +21,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 
-N_LEAKS, N_NEGATIVES = 63, 21
+N_LEAKS, N_NEGATIVES = 42, 7
 WORK = ROOT / "bench" / "results" / "leaks"
 
 

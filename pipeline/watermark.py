@@ -15,7 +15,7 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .config import check_code
+from .config import WatermarkParams, check_code
 from .kernels import (clustering, coding, digest, fingerprint, graph, keys, modulation, registration, resampling,
                       spectral)
 from .kernels import distortion as surface_measures
@@ -27,7 +27,7 @@ __all__ = [
     "Reference", "compute_reference", "embed_reference", "detect_reference", "fingerprint_length",
     "fingerprint_displacement", "cluster_amplitude",
     "capped", "mark_reach", "cluster_fingerprint", "check_count", "check_digest",
-    "fingerprint_observation", "ReferenceMismatch",
+    "fingerprint_observation", "ReferenceMismatch", "params_record", "params_from_record", "ADDED_LATER",
 ]
 
 
@@ -832,3 +832,16 @@ def mark_reach(params, reference, specs, bases):
 def params_record(params):
     """Plain-dict view of parameters for manifests and JSON."""
     return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(params).items()}
+
+
+# parameters added after records began, with what a record written before them meant (never the
+# current default: an old row keeps the parameters it was issued under)
+ADDED_LATER = {"amplitude": "model", "max_displacement": None, "tile_points": None, "code": "repetition"}
+
+
+def params_from_record(record):
+    """WatermarkParams of a :func:`params_record` dict, as written by any release."""
+    values = {**ADDED_LATER, **record}
+    seeds = values.get("seeds")
+    values["seeds"] = None if seeds is None else tuple(tuple(s) if isinstance(s, list) else s for s in seeds)
+    return WatermarkParams(**values)

@@ -28,8 +28,7 @@ from ..io.ledger import mac_ok
 from ..io.pointcloud import InputError, read_points, sha256_file
 from ..io.secrets import SecretError
 from ..kernels import fingerprint, keys
-from ..config import WatermarkParams
-from ..watermark import estimate_differences, fingerprint_length, fingerprint_observation
+from ..watermark import estimate_differences, fingerprint_length, fingerprint_observation, params_from_record
 from .reference import load_reference
 from .tasks import copy_label
 
@@ -42,10 +41,7 @@ FLOOR = 4.0      # scores kept whatever their rank (an accusation needs more tha
 
 def params_from_row(row):
     """WatermarkParams recorded in a ledger row (or in a :func:`reference_record`)."""
-    record = json.loads(row["params_json"])
-    seeds = record.get("seeds")
-    record["seeds"] = None if seeds is None else tuple(tuple(s) if isinstance(s, list) else s for s in seeds)
-    return WatermarkParams(**record)
+    return params_from_record(json.loads(row["params_json"]))
 
 
 def reference_record(row):

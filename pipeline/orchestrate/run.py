@@ -42,7 +42,7 @@ from ..io.paths import check_apart, check_disjoint, copy_path, pending_path, sou
 from ..io.pointcloud import InputError, sha256_file, units_of
 from ..io.secrets import without_secret_env
 from ..kernels import keys
-from ..watermark import params_record
+from ..watermark import ADDED_LATER, params_record
 from . import tasks
 from .progress import Progress
 
@@ -102,17 +102,16 @@ class Job:
         return [a for a in self.assets if a.items or a.error]
 
 
-# Fields added after a ledger format was first written: left out of the
-# generation id at their defaults, so a rerun of an older ledger with an
-# unchanged config stays in its generation
-_LATER_DEFAULTS = {"amplitude": "model", "max_displacement": None, "tile_points": None}
+# Fields added after a ledger format was first written are left out of the
+# generation id at the value a record without them meant (ADDED_LATER), so a
+# rerun of an older ledger with an unchanged config stays in its generation
 # Issued copies carry recipient fingerprints, not the message: its channel code changes no copy.
 _NOT_IN_COPIES = ("code",)
 
 
 def _generation_id(params, key_id, fingerprint, source_sha256):
     record = {k: v for k, v in params_record(params).items()
-              if k not in _NOT_IN_COPIES and not (k in _LATER_DEFAULTS and v == _LATER_DEFAULTS[k])}
+              if k not in _NOT_IN_COPIES and not (k in ADDED_LATER and v == ADDED_LATER[k])}
     text = json.dumps({"params": record, "key_id": key_id, "fp": fingerprint, "mark": MARK,
                        "source": source_sha256, "version": __version__}, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:16]

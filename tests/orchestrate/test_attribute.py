@@ -53,3 +53,17 @@ def test_a_suspect_that_lands_nowhere_on_the_original_is_a_failed_registration()
     away = estimate_differences(points + 10.0, points, specs, bases, dparams, params)["registration"]
     assert not here["failed"] and here["fitness"] > 0.99 and here["coverage"] > 0.99
     assert away["failed"] and away["fitness"] == 0.0 and away["coverage"] == 0.0
+
+
+def test_a_row_written_before_a_parameter_existed_keeps_the_value_it_was_issued_under():
+    import json
+
+    from pipeline.orchestrate.attribute import params_from_row
+
+    old = {"n_bits": 32, "chip_rate": 2, "beta": 0.002, "valence": 12, "n_clusters": 5, "cluster_size": 4000,
+           "seeds": None, "on_touch": "skip", "cover": False, "chip_layout": "consecutive", "first_coefficient": 0,
+           "crc_bits": 0, "displacement": "xyz"}               # a 0.2.0 row: no amplitude, cap, tiles or code
+    params = params_from_row({"params_json": json.dumps(old)})
+    assert (params.code, params.amplitude, params.max_displacement, params.tile_points) == (
+        "repetition", "model", None, None)                   # not today's defaults (convolutional needs c >= 3)
+    assert (params.beta, params.displacement, params.chip_rate) == (0.002, "xyz", 2)
