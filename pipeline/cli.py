@@ -393,8 +393,9 @@ def cmd_run(args):
           f"{sum(a.issued for a in job.assets)} already issued; key {job.key_id} ({job.key_fingerprint}); "
           f"ledger {job.manifests}")
     for item in job.assets:
-        if item.rule and item.items:
-            print(f"  {item.key}: {item.rule}")
+        for line in (item.rule, item.note) if item.items else ():
+            if line:
+                print(f"  {item.key}: {line}")
     if args.dry_run:
         for item in job.assets:
             if item.error:

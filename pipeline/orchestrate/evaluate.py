@@ -19,7 +19,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from .. import config as config_mod
-from ..io.pointcloud import atomic_write_bytes, read_points
+from ..io.pointcloud import atomic_write_bytes, read_points, units_of
 from ..kernels import fingerprint, keys, modulation
 from ..surface import apply_chain, parse_attack
 from ..watermark import (decode, distortion, embed_with_bases, estimate_differences, fingerprint_displacement,
@@ -280,7 +280,8 @@ def _cells(cfg, collusion):
             continue
         for model in exp["models"]:
             for overrides in exp.get("parameters") or [{}]:
-                params = config_mod.watermark_params({"watermark": {**cfg["watermark"], **overrides}})
+                params = config_mod.watermark_params({"watermark": {**cfg["watermark"], **overrides}},
+                                                     units_of(model))    # survey data: the rule embed uses
                 try:                    # fail before any work, not in every trial
                     config_mod.check_code(params)
                 except ValueError as exc:

@@ -74,6 +74,7 @@ class AssetJob:
     error: str | None = None
     params: object = None                         # WatermarkParams resolved for this asset
     rule: str | None = None                       # how auto parameters were resolved (survey data)
+    note: str | None = None                       # why a new generation starts, when earlier ones exist
 
 
 @dataclass
@@ -225,6 +226,9 @@ def _plan_asset(job, asset, recipients, rows, out_dir, force):
     # only this key's rows (their MACs were checked) say what is issued; every key's rows number generations
     same = [r for r in rows if r["generation_id"] == item.generation_id and r["key_fingerprint"] == job.key_fingerprint]
     item.generation = same[0]["generation"] if same else 1 + max((r["generation"] for r in rows), default=0)
+    mine = [r for r in rows if r["key_fingerprint"] == job.key_fingerprint and r["status"] == "ok"]
+    if not same and mine:          # say why a new generation starts (e.g. a default that changed)
+        item.note = _why_new(json.loads(max(mine, key=lambda r: r["generation"])["params_json"]), item)
     if item.generation >= 2**31 - 1:
         raise InputError(f"{job.ledger.copies}: a row of {asset.key} claims generation {item.generation - 1}: "
                          f"not a ledger this tool wrote (a forged row?)")
@@ -235,6 +239,16 @@ def _plan_asset(job, asset, recipients, rows, out_dir, force):
     item.items = [(r, copy_path(out_dir.resolve(), r, asset.key, item.generation, asset.path.suffix.lower()))
                   for r in recipients if r not in done or r in redo]
     return item
+
+
+def _why_new(last, item):
+    """One line: what differs from the last generation issued of this asset (parameters, or its bytes)."""
+    now = params_record(item.params)
+    changed = [f"{k} {last.get(k, ADDED_LATER.get(k))!r} -> {now[k]!r}" for k in sorted(now)
+               if k not in _NOT_IN_COPIES and last.get(k, ADDED_LATER.get(k)) != now[k]]
+    return (f"generation {item.generation}: " + (", ".join(changed) if changed else "the original's bytes, "
+            "the key or the tool version changed") + "; pin the earlier values in the config to stay in the "
+            "earlier generation" * bool(changed))
 
 
 def _check_copy_paths(job, recorded):

@@ -382,3 +382,17 @@ def test_a_new_amplitude_rule_or_cap_is_a_new_generation():
     assert _generation_id(replace(PARAMS_0_2_0, max_displacement=0.01), "k", "f" * 16, "s" * 64) != base
     # the message's channel code changes no fingerprinted copy: same generation
     assert _generation_id(replace(PARAMS_0_2_0, code="convolutional"), "k", "f" * 16, "s" * 64) == base
+
+
+def test_a_new_generation_says_which_parameters_changed(tmp_path):
+    src = make_catalogue(tmp_path / "assets", n_assets=1)
+    cfg_path = write_config(tmp_path, src)
+    _run(cfg_path, serial=True, sets=["beta=0.002", "displacement=xyz", "chip_layout=consecutive"])
+    job = plan_job(config.load_config(cfg_path), SECRET.encode())      # today's defaults
+    (item,) = job.assets
+    assert item.generation == 2
+    assert item.note.startswith("generation 2: beta 0.002 -> 0.00115, chip_layout 'consecutive' -> "
+                                "'interleaved', displacement 'xyz' -> 'normal'; pin the earlier values")
+    again = plan_job(config.load_config(cfg_path, ["beta=0.002", "displacement=xyz", "chip_layout=consecutive"]),
+                     SECRET.encode())
+    assert again.assets[0].generation == 1 and again.assets[0].note is None and not again.assets[0].items
