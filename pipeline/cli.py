@@ -23,6 +23,7 @@ import numpy as np  # noqa: E402
 
 from . import __version__, config as config_mod
 from .io.basis_store import BasisStore
+from .io.gltf_tools import ToolError
 from .io.ledger import Ledger, LedgerError
 from .io.pointcloud import InputError, check_distinct, check_output, read_points, sha256_file, write_points
 from .io.secrets import SecretError, check_key_id, load_secret
@@ -32,7 +33,7 @@ from .watermark import ReferenceMismatch, WatermarkError, detect_reference, dist
 
 log = logging.getLogger("pointmark")
 
-USAGE_ERRORS = (InputError, SecretError, config_mod.ConfigError, ReferenceMismatch, LedgerError)
+USAGE_ERRORS = (InputError, SecretError, config_mod.ConfigError, ReferenceMismatch, LedgerError, ToolError)
 
 
 def _common(p):

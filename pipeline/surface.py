@@ -117,7 +117,7 @@ def parse_attack(text):
     if name not in ATTACK_NAMES:
         raise ValueError(f"unknown attack {name!r}; known: {', '.join(ATTACK_NAMES)}")
     if name in FILE_ATTACKS:
-        return name, float(value) if value else FILE_ATTACKS[name][1]
+        return name, _file_strength(text, name, value)
     if not value:
         return name, attacks.check_strength(name, None)
     try:
@@ -125,6 +125,29 @@ def parse_attack(text):
     except ValueError:
         raise ValueError(f"attack {text[:40]!r}: strength {value[:20]!r} is not a number") from None
     return name, attacks.check_strength(name, strength)     # type, finiteness and range
+
+
+# glTF tool attacks that take a strength: (low, high, whole number, what it is); the others take none
+FILE_STRENGTHS = {"gltf-draco": (1, 30, True, "position bits, a whole number from 1 to 30"),
+                  "gltf-simplify": (0.0, 1.0, False, "the ratio of vertices kept, in (0, 1]")}
+
+
+def _file_strength(text, name, value):
+    """A glTF tool attack's strength checked before any work: Draco bits 1..30, a simplify ratio in (0, 1]."""
+    default = FILE_ATTACKS[name][1]
+    if not value:
+        return default
+    if name not in FILE_STRENGTHS:
+        raise ValueError(f"{name} takes no strength (got {value[:20]!r})")
+    try:
+        strength = float(value[:-1]) / 100.0 if value.endswith("%") else float(value)
+    except ValueError:
+        raise ValueError(f"attack {text[:40]!r}: strength {value[:20]!r} is not a number") from None
+    low, high, whole, what = FILE_STRENGTHS[name]
+    ok = np.isfinite(strength) and (low <= strength <= high if whole else low < strength <= high)
+    if not ok or whole and strength != int(strength):
+        raise ValueError(f"attack {text[:40]!r}: the strength is {what}")
+    return strength
 
 
 def apply_chain(points, chain, rng=None, *, faces=None):

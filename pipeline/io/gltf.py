@@ -32,6 +32,8 @@ from __future__ import annotations
 import base64
 import json
 import os
+import re
+import stat
 import struct
 import warnings
 from dataclasses import dataclass, field
@@ -41,7 +43,7 @@ from urllib.parse import unquote
 import numpy as np
 
 __all__ = ["GltfData", "GltfError", "read_gltf", "write_gltf", "check_head", "glb_from_points", "glb_from_mesh",
-           "REFUSED"]
+           "gltf_from_points", "REFUSED"]
 
 _GLB_MAGIC, _JSON_CHUNK, _BIN_CHUNK = b"glTF", 0x4E4F534A, 0x004E4942
 _DTYPES = {5120: "i1", 5121: "u1", 5122: "<i2", 5123: "<u2", 5125: "<u4", 5126: "<f4"}
@@ -67,7 +69,7 @@ class _Slot:
 
     accessor: int
     matrix: np.ndarray          # (4, 4) float64, local to world
-    where: np.ndarray = None    # (count,) int64 index of each vertex in the point set
+    where: np.ndarray = None    # (count,) int64 index of each vertex in the point set; None: a later instance
 
 
 @dataclass
@@ -111,6 +113,7 @@ class GltfData:
     text: bytes = b""
     source: bytes = b""
     bin_at: int = None
+    budget: int = 0                               # values the file may still expand to
 
     def faces(self):
         """(f, 3) int64 triangles over the points, empty when the file has none."""
@@ -142,7 +145,8 @@ def read_gltf(data, path, *, original=False):
     path : str or Path
         The file's path: its suffix picks the container, its folder resolves URIs.
     original : bool
-        Refuse, before any work, a file that cannot be written back (:data:`REFUSED`).
+        Refuse, before any work, a file that cannot be written back (:data:`REFUSED`) or whose
+        buffers lie in other files (its identity is the digest of its own bytes).
 
     Returns
     -------
@@ -157,12 +161,58 @@ def read_gltf(data, path, *, original=False):
     text, blob, bin_at = _split_glb(raw) if container == "glb" else (raw, None, None)
     doc = _parse_json(text)
     gltf = GltfData(doc, [], container, path.parent, text=bytes(text), source=bytes(raw), bin_at=bin_at)
-    gltf.buffers = [_buffer(gltf, i, b, blob) for i, b in enumerate(doc.get("buffers", []))]
+    specs = _array(doc, "buffers")
+    if original:
+        for i, spec in enumerate(specs):
+            uri = spec.get("uri")
+            if isinstance(uri, str) and not uri.startswith("data:"):
+                raise GltfError(f"buffer {i} lies in another file ({uri[:60]!r}), which the original's digest "
+                                f"would not cover; pack it as .glb or embed the buffers "
+                                f"(gltf-transform copy in.gltf out.glb)")
+    gltf.buffers = [_buffer(gltf, i, b, blob) for i, b in enumerate(specs)]
+    gltf.budget = _EXPANSION * max(len(raw) + sum(len(b) for b in gltf.buffers), 1)
     gltf.refusal = _refusal(doc)
     if original and gltf.refusal:
         raise GltfError(gltf.refusal)
-    _collect(gltf)
+    _collect(gltf, original=original)
     return gltf
+
+
+# Values a file may expand to (zero-filled accessors, decoded meshopt and Draco data, indices of
+# primitives that share an accessor), per byte of the file and its buffers: beyond is refused.
+_EXPANSION = 64
+
+
+def _spend(gltf, n, what):
+    """Count ``n`` values against the file's budget; refuse a file that would expand beyond it."""
+    gltf.budget -= int(n)
+    if gltf.budget < 0:
+        raise GltfError(f"{what} would expand the file beyond {_EXPANSION} values per stored byte "
+                        f"(a corrupt count or a hostile file)")
+
+
+def _array(doc, key):
+    """The top-level array ``key`` of the JSON (empty when absent), each element an object."""
+    value = doc.get(key, [])
+    if not isinstance(value, list) or not all(isinstance(v, dict) for v in value):
+        raise GltfError(f"'{key}' must be an array of objects")
+    return value
+
+
+def _index(doc, key, value, what):
+    """``value`` checked as an index into the top-level array ``key``: an int in range."""
+    items = _array(doc, key)
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value < len(items):
+        raise GltfError(f"{what} is {str(value)[:20]!r}, not an index of the {len(items)} {key}")
+    return value
+
+
+def _whole(spec, key, what, default=None, low=0):
+    """A non-negative integer member of a JSON object (``default`` when absent)."""
+    value = spec.get(key, default)
+    if isinstance(value, bool) or not isinstance(value, int) or value < low:
+        raise GltfError(f"{what} {key} is {str(value)[:20]!r}, not an integer >= {low}")
+    return value
 
 
 def _split_glb(raw):
@@ -192,74 +242,137 @@ def _parse_json(text):
         with warnings.catch_warnings():         # its dataclass decoder warns on optional fields left out
             warnings.simplefilter("ignore")
             pygltflib.GLTF2.from_dict(doc)
+    except RecursionError:
+        raise GltfError("invalid glTF JSON: nested too deep") from None
     except (ValueError, TypeError, KeyError, AttributeError) as exc:
         raise GltfError(f"invalid glTF JSON: {' '.join(str(exc).split())[:160]}") from None
-    if not isinstance(doc, dict) or not str(doc.get("asset", {}).get("version", "")).startswith("2"):
+    if not isinstance(doc, dict) or not isinstance(doc.get("asset"), dict) \
+            or not str(doc["asset"].get("version", "")).startswith("2"):
         raise GltfError("not a glTF 2.0 file (asset.version must be 2.x)")
     return doc
 
 
 def _buffer(gltf, index, spec, blob):
     """Bytes of buffer ``index``: the GLB BIN chunk, a data URI or a file beside the glTF."""
-    uri, length = spec.get("uri"), int(spec.get("byteLength", 0))
-    if uri is None and spec.get("extensions", {}).get(MESHOPT, {}).get("fallback"):
-        return bytes(length)            # meshopt's placeholder: every view on it is compressed
+    uri, length = spec.get("uri"), _whole(spec, "byteLength", f"buffer {index}:", low=1)
+    ext = spec.get("extensions", {})
+    if uri is None and isinstance(ext, dict) and isinstance(ext.get(MESHOPT), dict) and ext[MESHOPT].get("fallback"):
+        return b""                      # meshopt's placeholder: every view on it is compressed
     if uri is None:
         if blob is None:
             raise GltfError(f"buffer {index} has no uri and the file no BIN chunk")
         data = blob
+    elif not isinstance(uri, str):
+        raise GltfError(f"buffer {index}: its uri is not a string")
     elif uri.startswith("data:"):
         try:
             data = base64.b64decode(uri.split(",", 1)[1], validate=True)
         except (ValueError, IndexError):
             raise GltfError(f"buffer {index}: its data URI is not base64") from None
     else:
-        target = gltf.base / unquote(uri)
-        try:
-            data = target.read_bytes()
-        except OSError as exc:
-            raise GltfError(f"buffer {index}: cannot read {uri!r}: {os.strerror(exc.errno or 0).lower()}") from None
+        data = _external(gltf, index, uri, length)
     if len(data) < length:
         raise GltfError(f"buffer {index} declares {length} bytes, holds {len(data)}")
     return bytes(data)
 
 
+def _external(gltf, index, uri, length):
+    """The first ``length`` bytes of the regular file a relative URI names inside the glTF's own folder.
+
+    An absolute path, a scheme, a ``..`` or a link that leaves the folder,
+    and anything but a regular file (a FIFO, a device) are refused; the file
+    is opened without blocking and checked on its descriptor.
+    """
+    name = unquote(uri)
+    where = f"buffer {index}: {uri[:60]!r}"
+    if "\0" in name or os.path.isabs(name) or re.match(r"^[A-Za-z][A-Za-z0-9+.-]*:", name):
+        raise GltfError(f"{where} is not a relative path inside the file's folder")
+    folder = os.path.realpath(gltf.base)
+    target = os.path.realpath(os.path.join(folder, name))
+    if os.path.commonpath([folder, target]) != folder or target == folder:
+        raise GltfError(f"{where} leaves the file's folder (through '..' or a link)")
+    try:
+        if not stat.S_ISREG(os.stat(target).st_mode):
+            raise GltfError(f"{where} is not a regular file (a folder, FIFO or device)")
+        fd = os.open(target, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+        with os.fdopen(fd, "rb") as f:
+            if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+                raise GltfError(f"{where} is not a regular file (a folder, FIFO or device)")
+            os.set_blocking(fd, True)
+            data = f.read(length)
+    except OSError as exc:
+        raise GltfError(f"{where}: cannot read: {os.strerror(exc.errno or 0).lower()}") from None
+    if len(data) < length:
+        raise GltfError(f"{where} holds {len(data)} bytes, the buffer declares {length}")
+    return data
+
+
 def _refusal(doc):
     """Why the file cannot be written back byte for byte, or None."""
+    used = doc.get("extensionsUsed", [])
     for name in (DRACO, MESHOPT, "KHR_meshopt_compression"):
-        if name in doc.get("extensionsUsed", []):
+        if isinstance(used, list) and name in used:
             return f"{name}: {REFUSED.get(name, REFUSED[MESHOPT])}"
-    for mesh in doc.get("meshes", []):
-        for prim in mesh.get("primitives", []):
-            acc = doc["accessors"][prim["attributes"]["POSITION"]] if "POSITION" in prim.get("attributes", {}) \
-                else {}
-            if "sparse" in acc or (acc and "bufferView" not in acc):
-                return "a sparse POSITION accessor cannot be written back in place; make it dense first"
+    for m, mesh in enumerate(_array(doc, "meshes")):
+        for prim in _primitives(mesh, m):
+            if "POSITION" in prim["attributes"]:
+                acc = _array(doc, "accessors")[_index(doc, "accessors", prim["attributes"]["POSITION"],
+                                                      f"mesh {m}: POSITION")]
+                if "sparse" in acc or "bufferView" not in acc:
+                    return "a sparse POSITION accessor cannot be written back in place; make it dense first"
     return None
 
 
-def _collect(gltf):
-    """Slots, distinct world points and triangles of every primitive reached from a root node."""
+def _primitives(mesh, m):
+    """A mesh's primitives, each an object with an ``attributes`` object."""
+    prims = mesh.get("primitives", [])
+    if not isinstance(prims, list) or not all(isinstance(p, dict) and isinstance(p.get("attributes", {}), dict)
+                                              for p in prims):
+        raise GltfError(f"mesh {m}: 'primitives' must be an array of objects with attributes")
+    for prim in prims:
+        prim.setdefault("attributes", {})
+    return prims
+
+
+def _collect(gltf, *, original=False):
+    """Slots, distinct world points and triangles of every primitive reached from a root node.
+
+    Each POSITION accessor is counted once, in the world frame of the first
+    node that reaches it (its primary slot); later instances are the same
+    data moved and add no point.
+    """
     doc = gltf.doc
-    slots, triangles, seen = {}, [], set()
+    slots, triangles, primary = {}, [], {}
+    accessors, meshes = _array(doc, "accessors"), _array(doc, "meshes")
     for node, matrix in _walk(doc):
-        mesh = doc.get("meshes", [])[doc["nodes"][node]["mesh"]]
-        for prim in mesh.get("primitives", []):
-            acc = prim.get("attributes", {}).get("POSITION")
+        m = _index(doc, "meshes", doc["nodes"][node]["mesh"], f"node {node}: mesh")
+        for prim in _primitives(meshes[m], m):
+            acc = prim["attributes"].get("POSITION")
             if acc is None:
                 continue
+            acc = _index(doc, "accessors", acc, f"mesh {m}: POSITION")
+            if accessors[acc].get("type") != "VEC3":
+                raise GltfError(f"accessor {acc}: a POSITION accessor must be VEC3, not {accessors[acc].get('type')!r}")
             slot = slots.setdefault((acc, node), _Slot(acc, matrix))
-            if (id(prim), node) not in seen:
-                seen.add((id(prim), node))
-                triangles.append((slot, _triangles(gltf, prim, doc["accessors"][acc]["count"])))
+            if primary.setdefault(acc, slot) is not slot:
+                continue                                # a later instance: the same data moved
+            count = _whole(accessors[acc], "count", f"accessor {acc}:")
+            triangles.append((slot, _triangles(gltf, prim, count)))
     if not slots:
         raise GltfError("no mesh primitive with POSITION data is reached from a node")
     gltf.slots = list(slots.values())
-    worlds = [_world(gltf, s) for s in gltf.slots]
-    points, inverse = _first_occurrences(np.concatenate(worlds))
+    firsts = list(primary.values())
+    for s in firsts:
+        if original and not np.linalg.cond(s.matrix[:3, :3]) < 1e12:
+            raise GltfError(f"accessor {s.accessor}: its node's transform is singular (a zero scale), "
+                            f"so marked positions cannot be written back")
+    locals_ = [_accessor(gltf, s.accessor) for s in firsts]
+    with np.errstate(all="ignore"):            # an overflow is refused as non-finite points
+        worlds = [v @ s.matrix[:3, :3].T + s.matrix[:3, 3] for s, v in zip(firsts, locals_)]
+    points, inverse = _merged(gltf, firsts, locals_, worlds)
     bounds = np.cumsum([0] + [len(w) for w in worlds])
-    for s, a, b in zip(gltf.slots, bounds[:-1], bounds[1:]):
-        s.where = np.asarray(inverse).reshape(-1)[a:b]
+    for s, a, b in zip(firsts, bounds[:-1], bounds[1:]):
+        s.where = inverse[a:b]
     tri = [s.where[t] for s, t in triangles if len(t)]
     tri = np.concatenate(tri) if tri else np.zeros((0, 3), dtype=np.int64)
     keep = (tri[:, 0] != tri[:, 1]) & (tri[:, 1] != tri[:, 2]) & (tri[:, 0] != tri[:, 2])
@@ -279,60 +392,144 @@ def _first_occurrences(worlds):
     return worlds[first[order]], rank[np.asarray(inverse).reshape(-1)]
 
 
+def _rounding(gltf, slot, local, world):
+    """(count,) bound on how far storing a vertex in its accessor's type moves its world position."""
+    acc = gltf.doc["accessors"][slot.accessor]
+    linear = np.linalg.norm(slot.matrix[:3, :3])          # Frobenius: bounds the operator norm
+    if acc.get("componentType") == 5126:
+        step = np.linalg.norm(local, axis=1) * 2.0**-24 + 2.0**-140
+    else:
+        scale = _NORMALIZE.get(acc.get("componentType"), 1.0) if acc.get("normalized") else 1.0
+        step = np.full(len(local), 0.5 * np.sqrt(3) / scale)
+    arithmetic = (np.linalg.norm(world, axis=1) + np.linalg.norm(slot.matrix[:3, 3])) * 2.0**-48
+    return linear * step + arithmetic
+
+
+def _merged(gltf, slots, locals_, worlds):
+    """Distinct world points of the slots' vertices and each vertex's index among them.
+
+    Vertices at the same world position are one point; across frames (slots
+    whose transforms differ), vertices whose positions agree within what
+    storing them in their own frames can move them (float32 rounding, a
+    quantized accessor's step; twice that bound) are one point too: the
+    writer gives them one marked position, which each frame rounds its own
+    way, and the copy merges them again.
+    """
+    every = np.concatenate(worlds)
+    points, inverse = _first_occurrences(every)
+    frames = {}
+    frame = np.concatenate([np.full(len(w), frames.setdefault(s.matrix.tobytes(), len(frames)))
+                            for s, w in zip(slots, worlds)])
+    if len(frames) < 2:
+        return points, inverse
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    slack = np.concatenate([_rounding(gltf, s, v, w) for s, v, w in zip(slots, locals_, worlds)])
+    tau = np.zeros(len(points))
+    np.maximum.at(tau, inverse, slack)
+    first = np.full(len(points), len(every))
+    np.minimum.at(first, inverse, np.arange(len(every)))
+    home = frame[first]
+    pairs = cKDTree(points).query_pairs(r=4 * float(tau.max()), output_type="ndarray")
+    if len(pairs):
+        a, b = pairs[:, 0], pairs[:, 1]
+        close = np.linalg.norm(points[a] - points[b], axis=1) <= 2 * (tau[a] + tau[b])
+        pairs = pairs[close & (home[a] != home[b])]
+    if not len(pairs):
+        return points, inverse
+    n = len(points)
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, labels = connected_components(graph, directed=False)
+    _, lead, group = np.unique(labels, return_index=True, return_inverse=True)
+    rank = np.empty(len(lead), dtype=np.int64)
+    order = np.argsort(lead)
+    rank[order] = np.arange(len(lead))
+    return points[lead[order]], rank[np.asarray(group).reshape(-1)][inverse]
+
+
 def _walk(doc):
-    """(node index, (4, 4) world matrix) of each node holding a mesh, from every root."""
-    nodes = doc.get("nodes", [])
-    children = {c for n in nodes for c in n.get("children", [])}
-    stack = [(i, np.eye(4)) for i in range(len(nodes)) if i not in children]
+    """(node index, (4, 4) world matrix) of each node holding a mesh, from every root.
+
+    Every index is checked; a node that is the child of two parents, or
+    that only a cycle of children reaches, is refused.
+    """
+    nodes = _array(doc, "nodes")
+    parent_of = {}
+    for i, node in enumerate(nodes):
+        children = node.get("children", [])
+        if not isinstance(children, list):
+            raise GltfError(f"node {i}: 'children' must be an array")
+        for c in children:
+            _index(doc, "nodes", c, f"node {i}: child")
+            if c in parent_of or c == i:
+                raise GltfError(f"node {c} is reached twice (a cycle or a shared child)")
+            parent_of[c] = i
+    stack = [(i, np.eye(4)) for i in reversed(range(len(nodes))) if i not in parent_of][::-1]
     visited = set()
+    out = []
     while stack:
         index, parent = stack.pop()
-        if index in visited:
-            raise GltfError(f"node {index} is reached twice (a cycle or a shared child)")
         visited.add(index)
         node = nodes[index]
-        world = parent @ _local(node)
+        world = parent @ _local(node, index)
+        if not np.isfinite(world).all():
+            raise GltfError(f"node {index}: its world transform is not finite")
         if "mesh" in node:
-            yield index, np.eye(4) if "skin" in node else world     # skins: the bind pose
+            out.append((index, np.eye(4) if "skin" in node else world))     # skins: the bind pose
         stack.extend((c, world) for c in node.get("children", []))
+    if len(visited) < len(nodes):
+        lost = min(set(range(len(nodes))) - visited)
+        raise GltfError(f"node {lost} is part of a cycle of children (no root reaches it)")
+    return out
 
 
-def _local(node):
+def _numbers(node, key, n, default, index):
+    value = node.get(key, default)
+    if not isinstance(value, (list, tuple)) or len(value) != n or \
+            not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+        raise GltfError(f"node {index}: '{key}' must be {n} numbers")
+    value = np.asarray(value, dtype=np.float64)
+    if not np.isfinite(value).all():
+        raise GltfError(f"node {index}: '{key}' holds a non-finite number")
+    return value
+
+
+def _local(node, index=0):
     """A node's (4, 4) local matrix: ``matrix`` (column-major) or T @ R @ S."""
     if "matrix" in node:
-        return np.asarray(node["matrix"], dtype=np.float64).reshape(4, 4).T
-    x, y, z, w = node.get("rotation", (0.0, 0.0, 0.0, 1.0))
+        return _numbers(node, "matrix", 16, None, index).reshape(4, 4).T
+    x, y, z, w = _numbers(node, "rotation", 4, (0.0, 0.0, 0.0, 1.0), index)
     rotation = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
                          [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
                          [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
     out = np.eye(4)
-    out[:3, :3] = rotation * np.asarray(node.get("scale", (1.0, 1.0, 1.0)), dtype=np.float64)
-    out[:3, 3] = node.get("translation", (0.0, 0.0, 0.0))
+    with np.errstate(all="ignore"):
+        out[:3, :3] = rotation * _numbers(node, "scale", 3, (1.0, 1.0, 1.0), index)
+    out[:3, 3] = _numbers(node, "translation", 3, (0.0, 0.0, 0.0), index)
     return out
-
-
-def _world(gltf, slot):
-    """(count, 3) float64 world positions of a slot."""
-    local = _accessor(gltf, slot.accessor)
-    return local @ slot.matrix[:3, :3].T + slot.matrix[:3, 3]
 
 
 def _accessor(gltf, index, *, draco=None):
     """(count, width) float64 values of an accessor (normalized integers scaled to [-1, 1] or [0, 1])."""
-    acc = gltf.doc["accessors"][index]
+    acc = _array(gltf.doc, "accessors")[index]
     width, kind = _WIDTH.get(acc.get("type"), 0), acc.get("componentType")
     if kind not in _DTYPES or not width:
         raise GltfError(f"accessor {index}: component type {kind} / type {acc.get('type')} not supported")
-    count = int(acc["count"])
+    count = _whole(acc, "count", f"accessor {index}:")
+    _spend(gltf, count * width, f"accessor {index} ({count} x {width} values)")
     decoded = _draco_values(gltf, index)
     if decoded is not None:
+        if decoded.shape[0] != count:
+            raise GltfError(f"accessor {index} declares {count} elements, its Draco data decodes to {len(decoded)}")
         values = decoded
     elif "bufferView" in acc:
         values = _strided(gltf, acc, index, width).astype(np.float64)
     else:
         values = np.zeros((count, width))
     if "sparse" in acc:
-        values = _sparse(gltf, acc, values)
+        values = _sparse(gltf, acc, values, index)
     if acc.get("normalized") and kind in _NORMALIZE:
         values = np.maximum(values / _NORMALIZE[kind], -1.0)
     return values
@@ -341,9 +538,12 @@ def _accessor(gltf, index, *, draco=None):
 def _strided(gltf, acc, index, width):
     """(count, width) stored values of an accessor, read through its buffer view's stride."""
     dtype = np.dtype(_DTYPES[acc["componentType"]])
-    view, data = _view(gltf, acc["bufferView"])
-    stride = view.get("byteStride") or dtype.itemsize * width
-    start, count = int(acc.get("byteOffset", 0)), int(acc["count"])
+    what = f"accessor {index}:"
+    view, data = _view(gltf, _index(gltf.doc, "bufferViews", acc["bufferView"], f"accessor {index}: bufferView"))
+    stride = _whole(view, "byteStride", what, 0) or dtype.itemsize * width
+    if stride < dtype.itemsize * width or stride > 252 and "byteStride" in view:
+        raise GltfError(f"accessor {index}: a byte stride of {stride} does not hold {width} x {dtype.itemsize} bytes")
+    start, count = _whole(acc, "byteOffset", what, 0), _whole(acc, "count", what)
     need = start + (count - 1) * stride + dtype.itemsize * width if count else 0
     if need > len(data):
         raise GltfError(f"accessor {index} reaches byte {need} of a {len(data)}-byte buffer view")
@@ -352,28 +552,37 @@ def _strided(gltf, acc, index, width):
 
 def _view(gltf, index):
     """(view JSON, its bytes): meshopt-decoded when compressed."""
-    view = gltf.doc["bufferViews"][index]
+    view = _array(gltf.doc, "bufferViews")[index]
     if index in gltf.views:
         return view, gltf.views[index]
-    ext = view.get("extensions", {}).get(MESHOPT) or view.get("extensions", {}).get("KHR_meshopt_compression")
-    if ext:
-        gltf.views[index] = _meshopt(gltf, ext, int(view["byteLength"]))
+    exts = view.get("extensions", {}) if isinstance(view.get("extensions", {}), dict) else {}
+    ext = exts.get(MESHOPT) or exts.get("KHR_meshopt_compression")
+    length = _whole(view, "byteLength", f"buffer view {index}:", low=1)
+    if isinstance(ext, dict):
+        gltf.views[index] = _meshopt(gltf, ext, length, index)
         return view, gltf.views[index]
-    buffer = gltf.buffers[view["buffer"]]
-    start, length = int(view.get("byteOffset", 0)), int(view["byteLength"])
+    buffer = gltf.buffers[_index(gltf.doc, "buffers", view.get("buffer"), f"buffer view {index}: buffer")]
+    start = _whole(view, "byteOffset", f"buffer view {index}:", 0)
     if start + length > len(buffer):
         raise GltfError(f"buffer view {index} reaches byte {start + length} of a {len(buffer)}-byte buffer")
     return view, memoryview(buffer)[start:start + length]
 
 
-def _meshopt(gltf, ext, length):
+def _meshopt(gltf, ext, length, index):
     """A meshopt-compressed buffer view's bytes, decoded (vertex, index and sequence modes, filters)."""
     import meshoptimizer as mo
 
-    source = gltf.buffers[ext["buffer"]]
-    start = int(ext.get("byteOffset", 0))
-    data = bytes(source[start:start + int(ext["byteLength"])])
-    count, stride, mode = int(ext["count"]), int(ext["byteStride"]), ext.get("mode", "ATTRIBUTES")
+    what = f"buffer view {index}: meshopt"
+    source = gltf.buffers[_index(gltf.doc, "buffers", ext.get("buffer"), f"{what} buffer")]
+    start = _whole(ext, "byteOffset", what, 0)
+    data = bytes(source[start:start + _whole(ext, "byteLength", what)])
+    count, stride, mode = _whole(ext, "count", what), _whole(ext, "byteStride", what, low=1), ext.get("mode", "ATTRIBUTES")
+    if mode not in ("ATTRIBUTES", "TRIANGLES", "INDICES") or mode != "ATTRIBUTES" and stride not in (2, 4) \
+            or mode == "ATTRIBUTES" and (stride % 4 or stride > 256):
+        raise GltfError(f"{what} mode {str(mode)[:20]!r} with a stride of {stride} is not valid")
+    if length > count * stride:
+        raise GltfError(f"{what}: the view declares {length} bytes, its {count} x {stride} decoded bytes are fewer")
+    _spend(gltf, count * max(stride, 4) // 4, f"{what} ({count} x {stride} bytes)")
     try:
         if mode == "ATTRIBUTES":
             out = mo.decode_vertex_buffer(count, stride, data)   # float32 words: its uint8 dtype overruns
@@ -385,7 +594,7 @@ def _meshopt(gltf, ext, length):
             out = mo.decode_index_buffer(count, 4, data)
         else:
             out = mo.decode_index_sequence(count, 4, data)
-    except (ValueError, RuntimeError) as exc:
+    except (ValueError, RuntimeError, TypeError) as exc:
         raise GltfError(f"cannot decode meshopt data: {exc}") from None
     out = np.ascontiguousarray(out)
     if mode != "ATTRIBUTES":
@@ -393,15 +602,21 @@ def _meshopt(gltf, ext, length):
     return out.tobytes()[:length].ljust(length, b"\0")
 
 
-def _sparse(gltf, acc, values):
+def _sparse(gltf, acc, values, index):
     sparse = acc["sparse"]
+    what = f"accessor {index}: sparse"
+    if not isinstance(sparse, dict) or not isinstance(sparse.get("indices"), dict) \
+            or not isinstance(sparse.get("values"), dict):
+        raise GltfError(f"{what} must hold indices and values objects")
     idx_spec, val_spec = sparse["indices"], sparse["values"]
-    n = int(sparse["count"])
-    idx = _strided(gltf, {"componentType": idx_spec["componentType"], "bufferView": idx_spec["bufferView"],
-                          "byteOffset": idx_spec.get("byteOffset", 0), "count": n}, -1, 1)[:, 0]
+    n = _whole(sparse, "count", what, low=1)
+    if n > len(values) or idx_spec.get("componentType") not in (5121, 5123, 5125):
+        raise GltfError(f"{what}: {n} indices of type {idx_spec.get('componentType')} for {len(values)} elements")
+    idx = _strided(gltf, {"componentType": idx_spec["componentType"], "bufferView": idx_spec.get("bufferView"),
+                          "byteOffset": idx_spec.get("byteOffset", 0), "count": n}, index, 1)[:, 0]
     width = values.shape[1]
-    new = _strided(gltf, {"componentType": acc["componentType"], "bufferView": val_spec["bufferView"],
-                          "byteOffset": val_spec.get("byteOffset", 0), "count": n}, -1, width)
+    new = _strided(gltf, {"componentType": acc["componentType"], "bufferView": val_spec.get("bufferView"),
+                          "byteOffset": val_spec.get("byteOffset", 0), "count": n}, index, width)
     if len(idx) and idx.max() >= len(values):
         raise GltfError("a sparse accessor's index lies beyond its count")
     values = values.copy()
@@ -412,7 +627,9 @@ def _sparse(gltf, acc, values):
 def _draco_values(gltf, index):
     """Stored values of a Draco-compressed accessor (decoded once per primitive), or None."""
     cache = gltf.views.setdefault("draco", {})
-    if not cache and DRACO in gltf.doc.get("extensionsUsed", []):
+    used = gltf.doc.get("extensionsUsed", [])
+    if not cache and isinstance(used, list) and DRACO in used:
+        cache["decoded"] = True
         _decode_draco(gltf, cache)
     return cache.get(index)
 
@@ -420,20 +637,23 @@ def _draco_values(gltf, index):
 def _decode_draco(gltf, cache):
     import DracoPy
 
-    for mesh in gltf.doc.get("meshes", []):
-        for prim in mesh.get("primitives", []):
-            ext = prim.get("extensions", {}).get(DRACO)
-            if not ext:
+    for m, mesh in enumerate(_array(gltf.doc, "meshes")):
+        for prim in _primitives(mesh, m):
+            ext = prim.get("extensions", {}).get(DRACO) if isinstance(prim.get("extensions", {}), dict) else None
+            if not isinstance(ext, dict):
                 continue
-            _, data = _view(gltf, ext["bufferView"])
+            _, data = _view(gltf, _index(gltf.doc, "bufferViews", ext.get("bufferView"), f"mesh {m}: Draco bufferView"))
             try:
                 decoded = DracoPy.decode(bytes(data))
             except Exception as exc:    # DracoPy raises its own error types
                 raise GltfError(f"cannot decode Draco data: {exc}") from None
+            points = np.asarray(decoded.points, dtype=np.float64).reshape(-1, 3)
+            faces = np.asarray(getattr(decoded, "faces", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 1)
+            _spend(gltf, points.size + faces.size, f"mesh {m}'s Draco data")
             if "POSITION" in prim["attributes"]:
-                cache[prim["attributes"]["POSITION"]] = np.asarray(decoded.points, dtype=np.float64)
+                cache[prim["attributes"]["POSITION"]] = points
             if "indices" in prim:
-                cache[prim["indices"]] = np.asarray(decoded.faces, dtype=np.float64).reshape(-1, 1)
+                cache[prim["indices"]] = faces
 
 
 def _triangles(gltf, prim, count):
@@ -442,11 +662,16 @@ def _triangles(gltf, prim, count):
     if mode not in (4, 5, 6):
         return np.zeros((0, 3), dtype=np.int64)
     if "indices" in prim:
-        ids = _accessor(gltf, prim["indices"])[:, 0].astype(np.int64)
+        index = _index(gltf.doc, "accessors", prim["indices"], "a primitive's indices")
+        acc = gltf.doc["accessors"][index]
+        if acc.get("type") != "SCALAR" or acc.get("componentType") not in (5121, 5123, 5125):
+            raise GltfError(f"accessor {index}: indices must be SCALAR unsigned integers")
+        ids = _accessor(gltf, index)[:, 0].astype(np.int64)
         if len(ids) and (ids.min() < 0 or ids.max() >= count):
             raise GltfError(f"primitive indices reach vertex {int(ids.max())} of {count}")
     else:
         ids = np.arange(count, dtype=np.int64)
+    _spend(gltf, 3 * len(ids), "a primitive's triangles")
     if mode == 4:
         return ids[:len(ids) // 3 * 3].reshape(-1, 3)
     k = np.arange(max(len(ids) - 2, 0))
@@ -487,14 +712,18 @@ def write_gltf(gltf, points):
 
 
 def _locals(gltf, points):
-    """{accessor: (count, 3) local positions}: world points through each inverse node transform, instances averaged."""
-    sums, counts = {}, {}
+    """{accessor: (count, 3) local positions}: world points through its primary slot's inverse transform.
+
+    An accessor reached by several nodes (an instanced mesh) is counted once,
+    in its first node's frame; the other instances move with it.
+    """
+    out = {}
     for s in gltf.slots:
+        if s.where is None:
+            continue
         inverse = np.linalg.inv(s.matrix)
-        local = points[s.where] @ inverse[:3, :3].T + inverse[:3, 3]
-        sums[s.accessor] = sums.get(s.accessor, 0.0) + local
-        counts[s.accessor] = counts.get(s.accessor, 0) + 1
-    return {a: sums[a] / counts[a] for a in sums}
+        out[s.accessor] = points[s.where] @ inverse[:3, :3].T + inverse[:3, 3]
+    return out
 
 
 def _store(doc, buffers, index, local):
@@ -665,19 +894,8 @@ def _glb(doc, buffers):
     return _GLB_MAGIC + struct.pack("<II", 2, 12 + len(body)) + body
 
 
-def glb_from_mesh(points, faces=None):
-    """A new GLB holding one mesh: float32 positions (and uint32 triangles), one node, no transform.
-
-    Parameters
-    ----------
-    points : (n, 3) float
-    faces : (f, 3) int, optional
-        Without faces the primitive is a point set (mode 0).
-
-    Returns
-    -------
-    bytes
-    """
+def _mesh_doc(points, faces=None):
+    """(doc, blob) of a new glTF holding one mesh: float32 positions (and uint32 triangles), one node."""
     points = np.asarray(points, dtype="<f4")
     blob = points.tobytes()
     doc = {"asset": {"version": "2.0", "generator": "pointmark"}, "scene": 0, "scenes": [{"nodes": [0]}],
@@ -695,9 +913,33 @@ def glb_from_mesh(points, faces=None):
         prim = {"attributes": {"POSITION": 0}, "indices": 1, "mode": 4}
     doc["meshes"] = [{"primitives": [prim]}]
     doc["buffers"][0]["byteLength"] = len(blob)
+    return doc, blob
+
+
+def glb_from_mesh(points, faces=None):
+    """A new GLB holding one mesh: float32 positions (and uint32 triangles), one node, no transform.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+    faces : (f, 3) int, optional
+        Without faces the primitive is a point set (mode 0).
+
+    Returns
+    -------
+    bytes
+    """
+    doc, blob = _mesh_doc(points, faces)
     return _glb(doc, [bytearray(blob)])
 
 
 def glb_from_points(points):
     """A new GLB of bare points (mode 0), float32."""
     return glb_from_mesh(points)
+
+
+def gltf_from_points(points, faces=None):
+    """A new ``.gltf`` (JSON text) of bare points (mode 0, or triangles), float32, its buffer a base64 data URI."""
+    doc, blob = _mesh_doc(points, faces)
+    doc["buffers"][0]["uri"] = "data:application/octet-stream;base64," + base64.b64encode(blob).decode("ascii")
+    return json.dumps(doc, separators=(",", ":")).encode("utf-8")

@@ -47,7 +47,7 @@ _READERS = {"pcd": read_pcd, "xyz": read_xyz, "pts": read_pts, "obj": read_obj}
 _WRITERS = {"pcd": write_pcd, "xyz": write_text, "pts": write_text, "obj": write_obj,
             "glb": gltf_io.write_gltf, "gltf": gltf_io.write_gltf}
 _NEW_FILES = {"pcd": pcd_from_points, "xyz": xyz_from_points, "pts": pts_from_points, "obj": obj_from_points,
-              "glb": gltf_io.glb_from_points}
+              "glb": gltf_io.glb_from_points, "gltf": gltf_io.gltf_from_points}
 
 
 class InputError(ValueError):
