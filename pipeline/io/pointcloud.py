@@ -106,17 +106,22 @@ class Units:
     step : float
         The coarsest step of the file's coordinates (LAS/LAZ: its largest
         scale); 0 for floating point.
+    geographic : bool
+        The coordinate system is geographic (longitude and latitude in
+        degrees): no linear unit, so no rule in metres applies.
     """
 
     format: str
     unit_m: float | None = None
     rounding: float = 0.0
     step: float = 0.0
+    geographic: bool = False
 
 
 def _las_units(fmt, header):
     scales = np.asarray(header.scales, dtype=np.float64)
-    return Units(fmt, las_unit_m(header), float(0.5 * np.sqrt((scales**2).sum())), float(scales.max()))
+    return Units(fmt, las_unit_m(header), float(0.5 * np.sqrt((scales**2).sum())), float(scales.max()),
+                 las_geographic(header))
 
 
 def units_of(path):
@@ -142,26 +147,82 @@ def units_of(path):
 _EPSG_UNITS = {9001: 1.0, 9002: 0.3048, 9003: 1200 / 3937}
 
 
-def las_unit_m(header):
-    """Metres per horizontal unit of a LAS header (GeoTIFF ProjLinearUnits, else the WKT), or None."""
-    for vlr in header.vlrs:
+def _records(header):
+    """A LAS header's VLRs and (LAS 1.4) EVLRs."""
+    return list(getattr(header, "vlrs", None) or []) + list(getattr(header, "evlrs", None) or [])
+
+
+def _geo_keys(header):
+    """{GeoTIFF key id: value} of the header's GeoKeyDirectory (the first value of each key)."""
+    keys = {}
+    for vlr in _records(header):
         for key in getattr(vlr, "geo_keys", None) or ():
-            if key.id == 3076 and key.value_offset in _EPSG_UNITS:
-                return _EPSG_UNITS[key.value_offset]
-    for vlr in header.vlrs:
+            keys.setdefault(int(key.id), int(key.value_offset))
+    return keys
+
+
+def _horizontal_wkt(header):
+    """The horizontal part of the header's WKT (WKT1 or WKT2; the vertical CRS cut off), or None."""
+    for vlr in _records(header):
         text = getattr(vlr, "string", None)
         if isinstance(text, bytes):
             text = text.decode("latin-1")
-        if isinstance(text, str) and "PROJCS" in text:
-            horizontal = text.split("VERT_CS")[0]
-            found = re.findall(r'UNIT\["[^"]*",\s*([0-9.eE+-]+)', horizontal)
-            if found:
-                try:
-                    value = float(found[-1])
-                except ValueError:
-                    return None
-                return value if math.isfinite(value) and value > 0 else None
+        if isinstance(text, str) and re.search(r"\b(PROJCS|PROJCRS|PROJECTEDCRS|GEOGCS|GEOGCRS|GEOGRAPHICCRS|GEODCRS"
+                                               r"|GEODETICCRS)\[", text):
+            return re.split(r"\b(?:VERT_CS|VERTCRS|VERTICALCRS)\[", text)[0]
     return None
+
+
+_PROJECTED_WKT = r"\b(PROJCS|PROJCRS|PROJECTEDCRS)\["
+
+
+def las_geographic(header):
+    """True when a LAS header's coordinate system is geographic (degrees): GeoTIFF or WKT.
+
+    GeoTIFF: GTModelTypeGeoKey (1024) = 2, or geographic keys (2048
+    GeographicType, 2054 GeogAngularUnits) without projected ones (3072 and
+    later) nor model type 1. WKT: GEOGCS (WKT1) or GEOGCRS / a GEODCRS with
+    an ellipsoidal coordinate system (WKT2), not inside a projected CRS.
+    """
+    keys = _geo_keys(header)
+    if keys.get(1024) == 2:
+        return True
+    if keys and keys.get(1024) is None and any(k in keys for k in (2048, 2054)) \
+            and not any(k >= 3072 for k in keys):
+        return True
+    text = _horizontal_wkt(header)
+    if text is None or re.search(_PROJECTED_WKT, text):
+        return False
+    if re.search(r"\b(GEOGCS|GEOGCRS|GEOGRAPHICCRS)\[", text):
+        return True
+    return bool(re.search(r"\b(GEODCRS|GEODETICCRS)\[", text) and re.search(r"CS\[\s*ellipsoidal", text, re.I))
+
+
+def las_unit_m(header):
+    """Metres per horizontal unit of a LAS header (GeoTIFF ProjLinearUnits, else the WKT), or None.
+
+    VLRs and LAS 1.4 EVLRs are read; WKT1 (the last ``UNIT`` of a PROJCS)
+    and WKT2 (the last ``LENGTHUNIT`` of a PROJCRS). A geographic system
+    has no linear unit (None; :func:`las_geographic` says so).
+    """
+    keys = _geo_keys(header)
+    if keys.get(3076) in _EPSG_UNITS:
+        return _EPSG_UNITS[keys[3076]]
+    if las_geographic(header):
+        return None
+    text = _horizontal_wkt(header)
+    if text is None or not re.search(_PROJECTED_WKT, text):
+        return None
+    wkt2 = re.search(r"\b(PROJCRS|PROJECTEDCRS)\[", text)
+    pattern = r'LENGTHUNIT\["[^"]*",\s*([0-9.eE+-]+)' if wkt2 else r'(?<![A-Z])UNIT\["[^"]*",\s*([0-9.eE+-]+)'
+    found = re.findall(pattern, text)
+    if not found:
+        return None
+    try:
+        value = float(found[-1])
+    except ValueError:
+        return None
+    return value if math.isfinite(value) and value > 0 else None
 
 
 def format_of(path):

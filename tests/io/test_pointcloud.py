@@ -100,3 +100,63 @@ def test_las_written_and_read_back_in_chunks_is_the_same_file(tmp_path, suffix, 
     back = pointcloud.read_coordinates(tmp_path / f"chunks{suffix}")
     assert np.array_equal(back, read_points(tmp_path / f"whole{suffix}").points)
     assert np.abs(back - moved).max() <= 0.0005 + 1e-9            # the file's 1 mm scale, rounded
+
+
+def _geo_keys(pairs):
+    from laspy.vlrs.known import GeoKeyDirectoryVlr, GeoKeyEntryStruct, GeoKeysHeaderStructs
+
+    vlr = GeoKeyDirectoryVlr()
+    head = GeoKeysHeaderStructs()
+    head.key_directory_version, head.key_revision, head.number_of_keys = 1, 1, len(pairs)
+    vlr.geo_keys_header, vlr.geo_keys = head, []
+    for key, value in pairs:
+        entry = GeoKeyEntryStruct()
+        entry.id, entry.count, entry.value_offset = key, 1, value
+        vlr.geo_keys.append(entry)
+    return vlr
+
+
+WKT1_FEET = ('PROJCS["NAD83 / Texas", GEOGCS["NAD83", DATUM["NAD83", SPHEROID["GRS 1980",6378137,298.257222101]], '
+             'UNIT["degree",0.0174532925199433]], PROJECTION["Lambert_Conformal_Conic_2SP"], '
+             'UNIT["US survey foot",0.304800609601219]], VERT_CS["NAVD88", UNIT["metre",1]]')
+WKT1_GEOG = 'GEOGCS["WGS 84", DATUM["WGS_1984", SPHEROID["WGS 84",6378137,298.257223563]], UNIT["degree",0.0174532925199433]]'
+WKT2_FEET = ('PROJCRS["NAD83 / Texas", BASEGEOGCRS["NAD83", DATUM["NAD83", ELLIPSOID["GRS 1980",6378137,298.257222101,'
+             'LENGTHUNIT["metre",1]]], ANGLEUNIT["degree",0.0174532925199433]], CONVERSION["x", METHOD["LCC"], '
+             'PARAMETER["False easting",600000,LENGTHUNIT["metre",1]]], CS[Cartesian,2], '
+             'AXIS["easting",east,ORDER[1],LENGTHUNIT["US survey foot",0.304800609601219]], '
+             'AXIS["northing",north,ORDER[2],LENGTHUNIT["US survey foot",0.304800609601219]]]')
+WKT2_GEOG = ('GEOGCRS["WGS 84", DATUM["World Geodetic System 1984", ELLIPSOID["WGS 84",6378137,298.257223563,'
+             'LENGTHUNIT["metre",1]]], CS[ellipsoidal,2], AXIS["latitude",north,ANGLEUNIT["degree",0.0174532925199433]], '
+             'AXIS["longitude",east,ANGLEUNIT["degree",0.0174532925199433]]]')
+
+
+@pytest.mark.parametrize("crs, where, unit, geographic", [
+    ([(1024, 1), (3072, 32633), (3076, 9001)], "vlr", 1.0, False),
+    ([(1024, 1), (3072, 2277), (3076, 9003)], "vlr", 1200 / 3937, False),
+    ([(1024, 2), (2048, 4326), (2054, 9102)], "vlr", None, True),
+    ([(2048, 4326), (2054, 9102)], "vlr", None, True),                  # no model type: geographic keys alone
+    (WKT1_FEET, "vlr", 0.304800609601219, False),
+    (WKT1_GEOG, "vlr", None, True),
+    (WKT2_FEET, "vlr", 0.304800609601219, False),
+    (WKT2_FEET, "evlr", 0.304800609601219, False),                      # LAS 1.4: the WKT in an extended record
+    (WKT2_GEOG, "evlr", None, True),
+])
+def test_las_units_come_from_geotiff_keys_or_wkt_and_geographic_has_none(tmp_path, crs, where, unit, geographic):
+    import laspy
+    from laspy.vlrs.known import WktCoordinateSystemVlr
+    from laspy.vlrs.vlrlist import VLRList
+
+    from pipeline.io.pointcloud import units_of
+
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    vlr = WktCoordinateSystemVlr(crs) if isinstance(crs, str) else _geo_keys(crs)
+    if where == "vlr":
+        header.vlrs.append(vlr)
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = np.arange(5.0), np.arange(5.0), np.arange(5.0)
+    if where == "evlr":
+        las.evlrs = VLRList([vlr])
+    las.write(str(tmp_path / "a.las"))
+    for units in (units_of(tmp_path / "a.las"), read_points(tmp_path / "a.las").units()):
+        assert units.geographic is geographic
+        assert units.unit_m == (pytest.approx(unit) if unit else None)
