@@ -1,16 +1,17 @@
 """glTF 2.0 (``.gltf``) and GLB (``.glb``): world-space vertex positions, written back in place.
 
 The point set is every mesh primitive's POSITION data in world space: node
-transforms applied, a mesh on several nodes counted once per node, and
-vertices at the same world position (the copies a UV seam or a shared
-accessor makes) counted once, so a seam never cracks open.  Skinned meshes
+transforms applied, an accessor reached by several nodes (an instanced mesh)
+counted once in its first node's frame, and vertices at the same world
+position (the copies a UV seam or a shared accessor makes; across frames,
+within their float32 rounding) counted once, so a seam never cracks open.  Skinned meshes
 give their bind pose (the node transform is ignored, as the spec says);
 morph-target deltas are not applied and are written back unchanged.
 
 Writing changes only the bytes of the POSITION accessors and their ``min``
 and ``max``: each point's new world position goes back through the inverse
-node transform, a mesh instanced on several nodes takes the mean of its
-instances' positions, and the values are stored in the accessor's own
+node transform of its accessor's first node (the other instances move with
+it), and the values are stored in the accessor's own
 component type (float32, or KHR_mesh_quantization's integers, normalized or
 not).  The JSON text is patched in place: only the numbers of those
 accessors' ``min`` and ``max`` arrays (and the base64 of a changed buffer's
@@ -24,7 +25,9 @@ relative to the copy's folder.
 Suspects compressed with KHR_draco_mesh_compression (DracoPy) or
 EXT_meshopt_compression (meshoptimizer) are read; such originals, and
 sparse POSITION accessors, are refused because they cannot be written back
-byte for byte.
+byte for byte; so are originals whose buffers lie in other files (their
+digest would not cover them).  Every index, count and size is checked
+before it is used (docs/formats.md, "Hostile files").
 """
 
 from __future__ import annotations
