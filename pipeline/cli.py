@@ -179,7 +179,7 @@ def cmd_embed(args):
     t0 = time.perf_counter()
     cloud = read_points(args.original, distinct=True)
     check_distinct(args.original, cloud.points)
-    params = config_mod.watermark_params(cfg, cloud.units())
+    params = _asset_params(cfg, cloud)
     material = keys.derive_key_material(secret, args.key_id)
     try:
         ref = build_reference(cloud.points, params)
@@ -214,6 +214,14 @@ def cmd_embed(args):
         f"normal deviation {d['normal_deviation_deg']:.3f} deg, MSDM {d['msdm']:.3f}",
     ])
     return 0
+
+
+def _asset_params(cfg, cloud):
+    """The config's parameters for this file (auto resolved for survey data); exit 2 naming it when none fit."""
+    try:
+        return config_mod.watermark_params(cfg, cloud.units())
+    except ValueError as exc:
+        raise InputError(f"{cloud.path}: {exc}") from None
 
 
 def _publish(cloud, marked, out):
@@ -264,7 +272,7 @@ def cmd_detect(args):
     t0 = time.perf_counter()
     suspect = read_points(args.suspect)
     original = read_points(args.original)
-    params = config_mod.watermark_params(cfg, original.units())
+    params = _asset_params(cfg, original)
     material = keys.derive_key_material(secret, args.key_id)
     store = args.bases and BasisStore(args.bases)
     try:

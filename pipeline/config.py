@@ -708,6 +708,9 @@ def _survey_cap(survey_cap, units):
     """The cap in the file's units: less its rounding, so the written copy keeps the bound, unless that
     leaves less than one step of its coordinates (a centimetre-scale file): then the bound holds before
     the rounding."""
+    if units.geographic:
+        raise ValueError("geographic coordinates (degrees): the survey rule's 1 cm cap needs a linear unit; "
+                         "reproject, or set watermark.max_displacement (in the file's units) and amplitude")
     cap = survey_cap / (units.unit_m or 1.0)
     return cap - units.rounding if cap - units.rounding >= units.step else cap
 

@@ -59,6 +59,10 @@ def test_auto_resolves_to_the_survey_rule_for_las_only():
     assert config.marking_rule(mine, Units("las")) is None
     with pytest.raises(ValueError, match="resolved"):
         config.WatermarkParams(amplitude="auto")
+    # degrees have no centimetre: the rule refuses rather than cap at 0.01 degree (1.1 km)
+    with pytest.raises(ValueError, match="geographic coordinates"):
+        config.watermark_params(cfg, Units("las", None, 0.0, 1e-7, geographic=True))
+    assert config.watermark_params(mine, Units("las", None, 0.0, 1e-7, geographic=True)).max_displacement is None
 
 
 def _defaulted_parameters():

@@ -220,7 +220,12 @@ def _plan_asset(job, asset, recipients, rows, out_dir, force):
         return item
     item.source_sha256 = sha256_file(asset.path)
     units = units_of(asset.path)
-    item.params = watermark_params(job.cfg, units)
+    try:
+        item.params = watermark_params(job.cfg, units)
+    except ValueError as exc:                        # no parameters for this asset: a failed row, not a stop
+        item.error, item.params = f"{asset.path}: {exc}", job.params
+        item.items = [(r, None) for r in recipients]
+        return item
     item.rule = marking_rule(job.cfg, units)
     item.generation_id = _generation_id(item.params, job.key_id, job.key_fingerprint, item.source_sha256)
     # only this key's rows (their MACs were checked) say what is issued; every key's rows number generations

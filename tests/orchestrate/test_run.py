@@ -396,3 +396,24 @@ def test_a_new_generation_says_which_parameters_changed(tmp_path):
     again = plan_job(config.load_config(cfg_path, ["beta=0.002", "displacement=xyz", "chip_layout=consecutive"]),
                      SECRET.encode())
     assert again.assets[0].generation == 1 and again.assets[0].note is None and not again.assets[0].items
+
+
+def test_a_geographic_lidar_tile_is_a_failed_row_and_the_rest_are_issued(tmp_path):
+    import laspy
+    import numpy as np
+    from laspy.vlrs.known import WktCoordinateSystemVlr
+
+    src = make_catalogue(tmp_path / "assets", n_assets=1)
+    header = laspy.LasHeader(point_format=1, version="1.2")
+    header.scales, header.offsets = np.array([1e-7] * 3), np.array([-122.0, 45.0, 0.0])
+    header.vlrs.append(WktCoordinateSystemVlr('GEOGCS["WGS 84", DATUM["WGS_1984", SPHEROID["WGS 84",6378137,'
+                                              '298.257223563]], UNIT["degree",0.0174532925199433]]'))
+    las = laspy.LasData(header)
+    pts = procedural_shape("terrain", 3000, seed=5) * 1e-3 + [-122.0, 45.0, 0.0]
+    las.x, las.y, las.z = pts.T
+    las.write(str(src / "degrees.las"))
+    job, counts = _run(write_config(tmp_path, src), serial=True)
+    assert counts["ok"] == 1 and counts["failed"] == 1
+    failed = [r for r in _rows(job) if r["status"] == "failed"]
+    assert {r["asset_key"] for r in failed} == {"degrees"}
+    assert "geographic coordinates (degrees)" in failed[0]["error"]
