@@ -323,6 +323,14 @@ poses_bench = _leaks("poses_bench", "Distance of crop leaks' registrations from 
 negatives_bench = _leaks("negatives_bench", "Every negative scanned afresh in one run (~1.5 h on 2 cores).")
 
 
+def gltf_bench():
+    """GLB copies leaked through glTF Transform and trimesh, scanned (issue 40; ~10 min): see bench/gltf.py."""
+    sys.path.insert(0, str(ROOT / "bench"))
+    from gltf import main as run
+
+    run(ROOT / "bench" / "results" / "gltf")
+
+
 def tile_bench():
     """Embedding 1- and 10-million-point LAZ tiles (issue 15; about 45 minutes): see bench/tile.py."""
     sys.path.insert(0, str(ROOT / "bench"))
@@ -336,7 +344,7 @@ BENCHES = {"spectral": spectral_bench, "catalog": catalog_bench, "scan": scan_be
            "tile": tile_bench, "leaks-resample": resample_bench, "leaks-resample-check": resample_check,
            "leaks-trim": trim_bench, "leaks-parts": parts_bench, "leaks-rescan": rescan_bench,
            "leaks-candidates": candidates_bench, "leaks-poses": poses_bench,
-           "leaks-negatives": negatives_bench}
+           "leaks-negatives": negatives_bench, "gltf": gltf_bench}
 DEFAULT = ["spectral", "catalog", "scan", "fingerprint", "issue", "cli"]   # the others run when named
 
 
