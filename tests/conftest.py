@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -58,3 +59,53 @@ def sphere_patch(n=3000, rng=0):
     v /= np.linalg.norm(v, axis=1, keepdims=True)
     r = 1.0 + 0.15 * np.sin(3 * v[:, 0]) * np.cos(2 * v[:, 1]) + 0.1 * v[:, 2] ** 2
     return v * r[:, None] * np.array([1.0, 0.8, 0.6])
+
+
+# Every key of the watermark section, written out: a shared world's copies never depend on the schema's
+# defaults (which may change).  The small bookkeeping worlds of tests/orchestrate use these.
+SMALL_WATERMARK = {
+    "n_bits": 16, "chip_rate": 10, "beta": 0.002, "valence": 12, "n_clusters": 2, "cluster_size": 1200,
+    "seeds": None, "on_touch": "skip", "cover": False, "chip_layout": "consecutive", "first_coefficient": 0,
+    "crc_bits": 0, "displacement": "xyz", "amplitude": "model", "max_displacement": None, "tile_points": None,
+    "code": "repetition",
+}
+
+
+@pytest.fixture(scope="module")
+def inprocess_cluster():
+    """A Dask cluster in this process (one worker thread) for scans run through ``cli.main`` here."""
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0") as c:
+        yield c
+
+
+class ScanIndexes:
+    """The scan's feature index per catalogue version (``scan.out/state/index-*.npz``), kept for the session.
+
+    A scan builds the index of its catalogue into each new ``scan.out``; the small worlds of the
+    scan tests are the same catalogue bytes every time, so a later scan into a new ``scan.out`` is
+    given the index an earlier scan built (:meth:`seed`, then :meth:`keep` after the scan).  A
+    catalogue not seen before, or an index format or name that changed, is simply built by the scan.
+    """
+
+    def __init__(self, folder):
+        self.folder = Path(folder)
+
+    def seed(self, out):
+        out = Path(out)
+        for index in self.folder.glob("index-*.npz"):
+            target = out / "state" / index.name
+            if not target.exists():
+                target.parent.mkdir(parents=True, exist_ok=True)
+                shutil.copyfile(index, target)
+
+    def keep(self, out):
+        for index in (Path(out) / "state").glob("index-*.npz"):
+            if not (self.folder / index.name).exists():
+                shutil.copyfile(index, self.folder / index.name)
+
+
+@pytest.fixture(scope="session")
+def scan_indexes(tmp_path_factory):
+    return ScanIndexes(tmp_path_factory.mktemp("scan-indexes"))

@@ -40,6 +40,13 @@ SUSPECTS = {
 }
 
 
+# every key written out (the schema's defaults may change): the paper's 32 bits at c 10, two clusters
+WATERMARK = {"n_bits": 32, "chip_rate": 10, "beta": 0.002, "valence": 12, "n_clusters": 2, "cluster_size": 2000,
+             "seeds": None, "on_touch": "skip", "cover": False, "chip_layout": "consecutive", "first_coefficient": 0,
+             "crc_bits": 0, "displacement": "xyz", "amplitude": "model", "max_displacement": None,
+             "tile_points": None, "code": "repetition"}
+
+
 @pytest.fixture(scope="module")
 def scanned(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("scan")
@@ -51,7 +58,7 @@ def scanned(tmp_path_factory):
         "catalog": {"source": str(tmp / "catalog.parquet")}, "recipients": RECIPIENTS,
         "output": {"dir": str(tmp / "marked"), "manifests": str(tmp / "manifests")},
         "key": {"id": "scan-key", "secret_file": str(tmp / "key")},
-        "watermark": {"n_clusters": 2, "cluster_size": 2000},
+        "watermark": WATERMARK,
         "scan": {"suspects": str(tmp / "suspects"), "catalogue": str(tmp / "catalog.parquet"),
                  "out": str(tmp / "scan"), "top_k": 2},
         "dask": {"n_workers": 2, "progress": "none"},

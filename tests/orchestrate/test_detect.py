@@ -10,7 +10,7 @@ import pytest
 from pipeline.io.ledger import Ledger
 from pipeline.io.pointcloud import read_points, write_array, sha256_file
 from pipeline.kernels import attacks
-from tests.conftest import ROOT
+from tests.conftest import ROOT, SMALL_WATERMARK
 from tests.readonly import frozen, tree_bytes, unprivileged
 from tests.orchestrate.test_run import SECRET, _run, make_catalogue, write_config
 
@@ -21,7 +21,7 @@ pytestmark = pytest.mark.slow
 def issued(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("detect")
     src = make_catalogue(tmp / "assets", n_assets=2)
-    job, counts = _run(write_config(tmp, src), serial=True)
+    job, counts = _run(write_config(tmp, src, extra={"watermark": SMALL_WATERMARK}), serial=True)
     assert counts["ok"] == 2
     return tmp, job.manifests
 
@@ -101,10 +101,12 @@ def test_a_short_or_wrong_secret_is_refused(issued, secret, needle):
     assert secret not in res.stderr
 
 
-def test_an_unmarked_original_is_never_a_match_whatever_the_hash_table_holds(issued, tmp_path):
+def test_an_unmarked_original_is_never_a_match_whatever_the_hash_table_holds(issued, tmp_path, capsys,
+                                                                             inprocess_cluster, scan_indexes):
     """A forged ledger row claims the original's own bytes as an issued copy: the scan still says no match."""
     import yaml
 
+    from pipeline import cli
     from pipeline.io.catalog import catalogue_record, discover_assets, write_catalogue
     from pipeline.orchestrate.scan import read_scan
 
@@ -124,9 +126,13 @@ def test_an_unmarked_original_is_never_a_match_whatever_the_hash_table_holds(iss
     cfg["output"]["manifests"] = str(ledger)
     cfg["scan"] = {"suspects": str(tmp_path / "suspects"), "catalogue": str(tmp_path / "catalog.parquet"),
                    "out": str(tmp_path / "scan")}
+    cfg["dask"]["address"] = inprocess_cluster.scheduler_address      # the scan runs here, through the CLI
     (tmp_path / "scan.yaml").write_text(yaml.safe_dump(cfg))
-    res = _cli(tmp_path, "scan", str(tmp_path / "scan.yaml"))
-    assert res.returncode == 0, res.stdout + res.stderr
+    scan_indexes.seed(tmp_path / "scan")
+    code = cli.main(["scan", str(tmp_path / "scan.yaml")])
+    out, err = capsys.readouterr()
+    scan_indexes.keep(tmp_path / "scan")
+    assert code == 0, out + err
     [result] = read_scan(tmp_path / "scan")
     assert result["verdict"] == "no match" and result["recipient"] is None
 

@@ -27,6 +27,7 @@ from pipeline.kernels import attacks
 from pipeline.orchestrate.run import plan_job, run_job
 from pipeline.orchestrate.progress import Progress
 from pipeline.orchestrate.scan import read_scan
+from tests.conftest import SMALL_WATERMARK
 from tests.orchestrate.test_run import SECRET, _run, make_catalogue, write_config
 
 pytestmark = pytest.mark.slow
@@ -34,25 +35,28 @@ NEW_SECRET = "rotated-secret-for-carol-5e1"
 
 
 @pytest.fixture(scope="module")
-def cluster():
-    from distributed import LocalCluster
-
-    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0") as c:
-        yield c
-
-
-@pytest.fixture(scope="module")
-def world(tmp_path_factory, cluster):
+def world(tmp_path_factory, inprocess_cluster, scan_indexes):
     tmp = tmp_path_factory.mktemp("hostile")
     src = make_catalogue(tmp / "assets", n_assets=2)
-    cfg_path = write_config(tmp, src, extra={"dask": {"address": cluster.scheduler_address}})
+    cfg_path = write_config(tmp, src, extra={"watermark": SMALL_WATERMARK,
+                                             "dask": {"address": inprocess_cluster.scheduler_address}})
     _run(cfg_path, serial=True)
     write_catalogue([catalogue_record(a) for a in discover_assets(src)], tmp / "catalog.parquet")
-    return tmp
+    _INDEXES.append(scan_indexes)
+    yield tmp
+    _INDEXES.remove(scan_indexes)
+
+
+_INDEXES = []     # the session's ScanIndexes while the world is up (the index of a catalogue scanned before)
 
 
 def _scan(world, name, suspects=None, *, secret_file=None, catalogue=None, ledger=None, top_k=1):
-    """Scan ``suspects`` (default ``world/name``) into ``world/name.out``; returns (exit, stdout, stderr, rows)."""
+    """A config scanning ``suspects`` (default ``world/name``) into ``world/name.out``; returns its path.
+
+    The new ``scan.out`` is given the feature index an earlier scan of the same catalogue built, if any.
+    """
+    for indexes in _INDEXES:
+        indexes.seed(world / f"{name}.out")
     cfg = yaml.safe_load((world / "out.yaml").read_text())
     cfg["scan"] = {"suspects": str(suspects or world / name), "out": str(world / f"{name}.out"), "top_k": top_k,
                    "catalogue": str(catalogue or world / "catalog.parquet"), "manifests": ledger}
@@ -66,6 +70,8 @@ def _cli(capsys, cfg_path, *flags):
     code = cli.main(["scan", str(cfg_path), *flags])
     out, err = capsys.readouterr()
     folder = Path(yaml.safe_load(Path(cfg_path).read_text())["scan"]["out"])
+    for indexes in _INDEXES:
+        indexes.keep(folder)
     return code, out, err, ({os.path.basename(r["suspect_path"]): r for r in sorted(read_scan(folder),
                                                                                     key=lambda r: r["scanned_at"])}
                             if folder.exists() else {})

@@ -1,26 +1,52 @@
-"""Scan verdicts: failed is never "no match", rescans check only what is new, bad secrets stop the scan."""
+"""Scan verdicts: failed is never "no match", rescans check only what is new, bad secrets stop the scan.
+
+One small world (two 3,000-point assets issued to alice and bob, and bob's copy of asset-0 moved and
+reshuffled among the suspects) is built once, at one path (ledger rows and the catalogue name files
+by path), and every test gets it back as built.  Scans run through the CLI in this process, on an
+in-process Dask cluster; the feature index a first scan builds is kept for the session
+(``ScanIndexes``).
+"""
 
 import os
-import subprocess
-import sys
+import shutil
+from pathlib import Path
 
 import pytest
 import yaml
 
+from pipeline import cli
 from pipeline.io.catalog import catalogue_record, discover_assets, write_catalogue
 from pipeline.io.pointcloud import read_points, sha256_file, write_array
 from pipeline.kernels import attacks
 from pipeline.orchestrate.scan import read_scan
-from tests.conftest import ROOT
-from tests.orchestrate.test_run import SECRET, _run, make_catalogue, write_config
+from tests.conftest import SMALL_WATERMARK
+from tests.orchestrate.test_run import _run, make_catalogue, write_config
 
 pytestmark = pytest.mark.slow
 
 
-def _scan(tmp, secret=SECRET, *flags):
-    env = dict(os.environ, PYTHONPATH=str(ROOT), POINTMARK_SECRET=secret)
-    return subprocess.run([sys.executable, "-m", "pipeline.cli", "scan", str(tmp / "scan.yaml"), *flags], cwd=tmp,
-                          env=env, capture_output=True, text=True, timeout=900)
+class _Result:
+    def __init__(self, returncode, stdout, stderr):
+        self.returncode, self.stdout, self.stderr = returncode, stdout, stderr
+
+
+@pytest.fixture()
+def scan(capsys, scan_indexes):
+    """Scan ``tmp/scan.yaml`` through the CLI; returns its exit status and output.
+
+    ``seed``: give the scan the feature index an earlier scan of the same catalogue built.
+    """
+    def scan(tmp, *flags, seed=True):
+        out = Path(yaml.safe_load((tmp / "scan.yaml").read_text())["scan"]["out"])
+        if seed:
+            scan_indexes.seed(out)
+        capsys.readouterr()
+        code = cli.main(["scan", str(tmp / "scan.yaml"), *flags])
+        res = _Result(code, *capsys.readouterr())
+        scan_indexes.keep(out)
+        return res
+
+    return scan
 
 
 def _latest(tmp):
@@ -30,23 +56,36 @@ def _latest(tmp):
     return latest
 
 
-@pytest.fixture()
-def world(tmp_path):
-    src = make_catalogue(tmp_path / "assets", n_assets=2)
-    cfg_path = write_config(tmp_path, src, extra={"dask": {"n_workers": 1}})
+@pytest.fixture(scope="module")
+def _built(tmp_path_factory, inprocess_cluster):
+    root = tmp_path_factory.mktemp("verdicts")
+    tmp = root / "world"
+    src = make_catalogue(tmp / "assets", n_assets=2)
+    cfg_path = write_config(tmp, src, extra={"watermark": SMALL_WATERMARK,
+                                             "dask": {"address": inprocess_cluster.scheduler_address}})
     _run(cfg_path, serial=True)
-    write_catalogue([catalogue_record(a) for a in discover_assets(src)], tmp_path / "catalog.parquet")
-    points = read_points(tmp_path / "out" / "marked" / "bob" / "asset-0.ply").points
-    write_array(tmp_path / "suspects", "found", attacks.apply_chain(points, [("random_similarity", None),
-                                                                             ("shuffle", None)], 2), "ply")
+    write_catalogue([catalogue_record(a) for a in discover_assets(src)], tmp / "catalog.parquet")
+    points = read_points(tmp / "out" / "marked" / "bob" / "asset-0.ply").points
+    write_array(tmp / "suspects", "found", attacks.apply_chain(points, [("random_similarity", None),
+                                                                     ("shuffle", None)], 2), "ply")
     cfg = yaml.safe_load(cfg_path.read_text())
-    cfg["scan"] = {"suspects": str(tmp_path / "suspects"), "catalogue": str(tmp_path / "catalog.parquet"),
-                   "out": str(tmp_path / "scan"), "top_k": 1}   # one candidate: the bookkeeping is under test
-    (tmp_path / "scan.yaml").write_text(yaml.safe_dump(cfg))
-    return tmp_path, cfg_path
+    cfg["scan"] = {"suspects": str(tmp / "suspects"), "catalogue": str(tmp / "catalog.parquet"),
+                   "out": str(tmp / "scan"), "top_k": 1}   # one candidate: the bookkeeping is under test
+    (tmp / "scan.yaml").write_text(yaml.safe_dump(cfg))
+    shutil.copytree(tmp, root / "pristine", symlinks=True)
+    return root
 
 
-def test_a_check_that_cannot_be_made_is_failed_exit_3_and_retried_with_one_result_file(world):
+@pytest.fixture()
+def world(_built):
+    """The world as built, back at the path it was built at."""
+    tmp = _built / "world"
+    shutil.rmtree(tmp)
+    shutil.copytree(_built / "pristine", tmp, symlinks=True)
+    return tmp, tmp / "out.yaml"
+
+
+def test_a_check_that_cannot_be_made_is_failed_exit_3_and_retried_with_one_result_file(world, scan):
     tmp, _ = world
     cfg = yaml.safe_load((tmp / "scan.yaml").read_text())
     cfg["scan"]["top_k"] = 2      # the other candidate's check completes, as "no match": still failed
@@ -56,39 +95,39 @@ def test_a_check_that_cannot_be_made_is_failed_exit_3_and_retried_with_one_resul
     kept = tmp / "out" / "manifests" / "bases" / "originals"
     original.rename(hidden)                                  # the check finds the original nowhere:
     kept.rename(tmp / "originals.away")                      # not in the catalogue, nor kept by the run
-    for _ in range(2):
-        res = _scan(tmp)
+    for _ in range(2):         # (the scan indexes the catalogue without the missing file itself)
+        res = scan(tmp, seed=False)
         assert res.returncode == 3, res.stdout + res.stderr
         assert "1 failed" in res.stdout and "no match" not in _latest(tmp)["found.ply"]["verdict"]
         assert _latest(tmp)["found.ply"]["verdict"] == "failed"
     assert len(list((tmp / "scan" / "results").glob("*.failed.parquet"))) == 1
     hidden.rename(original)
-    res = _scan(tmp)
+    res = scan(tmp)
     assert res.returncode == 1, res.stdout + res.stderr      # retried, and found
     assert _latest(tmp)["found.ply"]["verdict"] == "match" and _latest(tmp)["found.ply"]["recipient"] == "bob"
 
 
-def test_a_forced_rescan_adds_a_record_and_keeps_the_first(world):
+def test_a_forced_rescan_adds_a_record_and_keeps_the_first(world, scan):
     tmp, _ = world
-    assert _scan(tmp).returncode == 1
+    assert scan(tmp).returncode == 1
     first = read_scan(tmp / "scan")
-    assert _scan(tmp, SECRET, "--force").returncode == 1
+    assert scan(tmp, "--force").returncode == 1
     rows = read_scan(tmp / "scan")
     assert len(rows) == 2 and first[0] in rows
     assert _latest(tmp)["found.ply"]["scanned_at"] > first[0]["scanned_at"]
-    assert "1 already scanned" in _scan(tmp).stdout       # the latest record counts
+    assert "1 already scanned" in scan(tmp).stdout       # the latest record counts
 
 
-def test_a_rescan_checks_old_suspects_only_against_new_copies(world):
+def test_a_rescan_checks_old_suspects_only_against_new_copies(world, scan):
     tmp, cfg_path = world
     write_array(tmp / "suspects", "unrelated", read_points(tmp / "assets" / "asset-1.pcd").points[::-1] * 1.5, "ply")
-    assert _scan(tmp).returncode == 1
+    assert scan(tmp).returncode == 1
     first = _latest(tmp)
     assert first["found.ply"]["n_checked"] == 2 and first["unrelated.ply"]["verdict"] == "no match"
-    res = _scan(tmp)                                          # nothing new: both skipped
+    res = scan(tmp)                                          # nothing new: both skipped
     assert "2 already scanned" in res.stdout, res.stdout
     _run(cfg_path, serial=True, sets=["recipients=[alice, bob, carol]"])     # one new copy per asset
-    assert _scan(tmp).returncode == 1
+    assert scan(tmp).returncode == 1
     second = _latest(tmp)
     # the unmatched suspect checked only against carol's new copy of its candidate, counted on top of before
     assert second["unrelated.ply"]["n_checked"] == first["unrelated.ply"]["n_checked"] + 1
@@ -97,29 +136,29 @@ def test_a_rescan_checks_old_suspects_only_against_new_copies(world):
     assert second["found.ply"]["ledger_version"] != first["found.ply"]["ledger_version"]
 
 
-def test_a_secret_that_opens_no_issued_key_refuses_the_scan_and_marks_nothing(world):
+def test_a_secret_that_opens_no_issued_key_refuses_the_scan_and_marks_nothing(world, scan):
     tmp, _ = world
     cfg = yaml.safe_load((tmp / "scan.yaml").read_text())
     (tmp / "rotated.key").write_text("a-rotated-secret-that-issued-nothing\n")
     cfg["key"]["secret_file"] = str(tmp / "rotated.key")
     (tmp / "scan.yaml").write_text(yaml.safe_dump(cfg))
-    res = _scan(tmp)
+    res = scan(tmp)
     assert res.returncode == 2 and "matches none of the key fingerprints" in res.stderr
     assert len(res.stderr.strip().splitlines()) == 1
     assert not (tmp / "scan").exists() or not read_scan(tmp / "scan")
 
 
-def test_leftover_temporary_files_are_ignored(world):
+def test_leftover_temporary_files_are_ignored(world, scan):
     tmp, _ = world
     (tmp / "scan" / "results").mkdir(parents=True)
     (tmp / "scan" / "results" / ".found.x1y2.tmp.parquet").write_bytes(b"PAR1 half a file")
     (tmp / "out" / "manifests" / "copies" / ".part-x.parquet.tmp").write_bytes(b"junk")
-    res = _scan(tmp)
+    res = scan(tmp)
     assert res.returncode == 1, res.stdout + res.stderr
     assert _latest(tmp)["found.ply"]["verdict"] == "match"
 
 
-def test_copies_of_an_original_since_revised_stay_attributable_and_never_read_no_match(world):
+def test_copies_of_an_original_since_revised_stay_attributable_and_never_read_no_match(world, scan):
     # asset-0 is revised (new bytes, at a new path) and the revision issued to carol; bob's copy of the
     # first bytes leaks.  Its check must read the first bytes, which the ledger recorded where they still are.
     tmp, cfg_path = world
@@ -131,19 +170,19 @@ def test_copies_of_an_original_since_revised_stay_attributable_and_never_read_no
     records = [catalogue_record(a) for a in discover_assets(tmp / "revised")]
     records += [catalogue_record(a) for a in discover_assets(tmp / "assets") if a.key == "asset-1"]
     write_catalogue(records, tmp / "catalog.parquet")
-    res = _scan(tmp)
+    res = scan(tmp)
     assert res.returncode == 1, res.stdout + res.stderr
     assert _latest(tmp)["found.ply"]["verdict"] == "match" and _latest(tmp)["found.ply"]["recipient"] == "bob"
     first.rename(tmp / "asset-0.ply.gone")                  # the first bytes are gone from where they were issued
     carol = read_points(next((tmp / "out" / "marked" / "carol").glob("asset-0*.ply"))).points
     write_array(tmp / "suspects", "revision", attacks.apply_chain(carol, [("random_similarity", None),
                                                                           ("shuffle", None)], 3), "ply")
-    res = _scan(tmp, SECRET, "--force")
+    res = scan(tmp, "--force")
     assert res.returncode == 1, res.stdout + res.stderr     # the run kept them in the basis store
     assert _latest(tmp)["found.ply"]["recipient"] == "bob" and _latest(tmp)["revision.ply"]["recipient"] == "carol"
     kept = tmp / "out" / "manifests" / "bases" / "originals" / f"{sha256_file(tmp / 'asset-0.ply.gone')}.ply"
     kept.unlink()                                           # and now they are nowhere
-    res = _scan(tmp, SECRET, "--force")
+    res = scan(tmp, "--force")
     assert res.returncode == 3, res.stdout + res.stderr     # failed (and retried), never "no match"
     row = _latest(tmp)["found.ply"]
     assert row["verdict"] == "failed" and row["error"].startswith("asset-0: 2 issued copies cannot be checked")
