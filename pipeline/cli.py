@@ -274,9 +274,10 @@ def cmd_detect(args):
     original = read_points(args.original)
     params = _asset_params(cfg, original)
     material = keys.derive_key_material(secret, args.key_id)
-    store = args.bases and BasisStore(args.bases)
+    store = BasisStore(args.bases) if args.bases else None
+    key = store.key(sha256_file(args.original), params) if store else None
     try:
-        ref = build_reference(original.points, params, store, store and store.key(sha256_file(args.original), params))
+        ref = build_reference(original.points, params, store, key)
         result = detect_reference(suspect.points, original.points, ref, material, params,
                                   config_mod.detect_params(cfg))
     except WatermarkError as exc:

@@ -251,9 +251,10 @@ def _why_new(last, item):
     now = params_record(item.params)
     changed = [f"{k} {last.get(k, ADDED_LATER.get(k))!r} -> {now[k]!r}" for k in sorted(now)
                if k not in _NOT_IN_COPIES and last.get(k, ADDED_LATER.get(k)) != now[k]]
-    return (f"generation {item.generation}: " + (", ".join(changed) if changed else "the original's bytes, "
-            "the key or the tool version changed") + "; pin the earlier values in the config to stay in the "
-            "earlier generation" * bool(changed))
+    if not changed:
+        return f"generation {item.generation}: the original's bytes, the key or the tool version changed"
+    return (f"generation {item.generation}: {', '.join(changed)}; pin the earlier values in the config to stay "
+            f"in the earlier generation")
 
 
 def _check_copy_paths(job, recorded):
