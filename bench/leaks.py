@@ -341,7 +341,7 @@ def poses_bench(names=POSE_LEAKS):
     """
     from scipy.spatial import cKDTree
 
-    from pipeline import surface, watermark
+    from pipeline import config, surface, watermark
     from pipeline.io.pointcloud import read_points
     from pipeline.kernels import attacks, registration, resampling
 
@@ -359,7 +359,8 @@ def poses_bench(names=POSE_LEAKS):
         true = registration.umeyama(drawn, kept)
         spacing = float(np.median(resampling.nearest_spacing(original)))
         t0 = time.perf_counter()
-        found = watermark._register(drawn, original, spacing, "robust", cKDTree(original),
+        found = watermark._register(drawn, original, spacing, config.DetectParams(registration="robust"),
+                                    cKDTree(original),
                                     resampling.estimate_normals(original))
         off = np.linalg.norm(registration.apply(found, drawn) - registration.apply(true, drawn), axis=1) / spacing
         print(f"{name} {asset} {attack}: median {np.median(off):.2f}, most {off.max():.2f} spacings from the "

@@ -152,6 +152,15 @@ DETECTION = _section("Detection (paper, section 2.2, Extraction).", {
                        "root-median-square misfits of their cluster and more than the mark can move the "
                        "point (junk near the surface); null keeps every match, as the paper's fit does.",
                        minimum=1, maximum=1e6),
+    "ransac_iterations": _p("integer", 20000,
+                            "RANSAC samples per scale hypothesis of the feature-based global step "
+                            "(robust and global registration).", minimum=10, maximum=10_000_000),
+    "search_rotations": _p("integer", 1000,
+                           "Rotations tried by the exhaustive search that registers a part laid loosely on "
+                           "a smooth shape, where features mislead (robust registration).",
+                           minimum=1, maximum=100_000),
+    "search_poses": _p("integer", 48,
+                       "Best poses of that search refined by ICP.", minimum=1, maximum=10_000),
     "epsilon": _p("number", 1e-6,
                   "Largest probability of accusing any innocent recipient, per suspect: a recipient is "
                   "named only when its fingerprint score clears the threshold this sets for the number "
@@ -186,7 +195,8 @@ OUTPUT = _section("Where results go; relative paths are relative to the working 
 DASK = _section("The Dask cluster that runs the graph.", {
     "address": _p(("string", "null"), None,
                   "Scheduler address (tcp://HOST:PORT, tls://, ws://, wss:// or inproc://) of an existing "
-                  "cluster; null starts a LocalCluster.", pattern=ADDRESS_PATTERN),
+                  "cluster; null: Dask's own scheduler-address (DASK_SCHEDULER_ADDRESS) when set, else a new "
+                  "LocalCluster.", pattern=ADDRESS_PATTERN),
     "n_workers": _p(("integer", "null"), None, "LocalCluster worker processes (null: CPU count).",
                     minimum=1, maximum=1024),
     "memory_limit": _p(("string", "integer"), "auto", "Memory limit per LocalCluster worker: auto, or bytes "
@@ -669,6 +679,9 @@ class DetectParams:
     gate_switch: float = _D["gate_switch"]
     epsilon: float = _D["epsilon"]                # probability of accusing any innocent, per suspect
     outlier_trim: float | None = _D["outlier_trim"]
+    ransac_iterations: int = _D["ransac_iterations"]   # the registration's effort on a suspect that is
+    search_rotations: int = _D["search_rotations"]     # not a whole copy: the global step's samples, the
+    search_poses: int = _D["search_poses"]             # rotation search's rotations and refined poses
 
 
 def check_code(params, error=ValueError):

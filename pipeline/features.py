@@ -122,11 +122,10 @@ def match(query, reference, *, chunk=2048):
     back = np.zeros(len(reference), dtype=np.int64)
     cols = np.arange(len(reference))
     for lo in range(0, len(query), chunk):
-        block = query[lo:lo + chunk]
-        forward[lo:lo + chunk] = (block @ reference.T).argmax(axis=1)
-        sim = reference @ block.T
-        rows = sim.argmax(axis=1)
-        value = sim[cols, rows]
+        sim = query[lo:lo + chunk] @ reference.T                          # (c, r): one product, both ways
+        forward[lo:lo + chunk] = sim.argmax(axis=1)
+        rows = sim.argmax(axis=0)
+        value = sim[rows, cols]
         better = value > best
         best[better] = value[better]
         back[better] = rows[better] + lo
@@ -313,18 +312,17 @@ def needs_search(transform, suspect, original, spacing):
     return min(fitness, coverage) < 0.8 and residual > SEARCH_RESIDUAL * spacing
 
 
-SEARCH_POSES = 48      # coarse poses from the rotation search, each refined briefly on a small probe
-SEARCH_REFINED = 6     # of those, refined on the ICP subsample (the best on every point)
+SEARCH_REFINED = 6     # of the search's coarse poses, refined on the ICP subsample (the best on every point)
 
 
-def register_search(suspect, original, *, spacing, icp_points=6000, rng=0, normals=None):
+def register_search(suspect, original, *, spacing, rotations, poses, icp_points=6000, rng=0, normals=None):
     """Part-to-whole registration without features: :func:`registration.rotation_search` then ICP.
 
     The scale comes from the ratio of point spacings (a crop keeps its
-    spacing).  Each of :data:`SEARCH_POSES` coarse poses is refined by a
-    short trimmed ICP on about 1,500 points; the :data:`SEARCH_REFINED`
-    best (ordered as :func:`best_overlap` orders) again on the ICP
-    subsample, and the best of those on every point.
+    spacing).  Each of the ``poses`` best coarse poses of ``rotations``
+    rotations is refined by a short trimmed ICP on about 1,500 points; the
+    :data:`SEARCH_REFINED` best (ordered as :func:`best_overlap` orders)
+    again on the ICP subsample, and the best of those on every point.
 
     Parameters
     ----------
@@ -332,6 +330,8 @@ def register_search(suspect, original, *, spacing, icp_points=6000, rng=0, norma
     original : (m, 3) float
     spacing : float
         Median nearest-neighbour distance of the original.
+    rotations, poses : int
+        ``detection.search_rotations`` and ``detection.search_poses``.
     icp_points : int
     rng : int
     normals : (m, 3) float, optional
@@ -356,7 +356,7 @@ def register_search(suspect, original, *, spacing, icp_points=6000, rng=0, norma
         f, c, r = registration.overlap(registration.apply(fine, points), ref.tree, sample, 3.0 * spacing)
         return (harmonic(f, c), r), fine
 
-    starts = registration.rotation_search(dense, original, spacing / spread, top=SEARCH_POSES)
+    starts = registration.rotation_search(dense, original, spacing / spread, rotations=rotations, top=poses)
     quick = [refined(probe, start, 30, ref.sample[:1000]) for _, start in starts]
     top = max(h for (h, _), _ in quick)
     quick.sort(key=lambda q: (q[0][0] < top - OVERLAP_TIE, q[0][1]))      # best_overlap's order
@@ -396,8 +396,8 @@ def polish(suspect, original, transform, *, spacing, normals=None):
 SCALES = (1.0, 2**0.5, 2**-0.5, 2.0, 0.5, 2**1.5, 2**-1.5)
 
 
-def register_global(suspect, original, *, spacing, target=4000, scales=SCALES,
-                    iterations=20000, good=0.2, rng=0, icp_points=6000, candidates_per_pool=8):
+def register_global(suspect, original, *, spacing, iterations, target=4000, scales=SCALES, good=0.2, rng=0,
+                    icp_points=6000, candidates_per_pool=8):
     """Part-to-whole similarity registration from FPFH correspondences.
 
     For each scale hypothesis (relative to the spacing ratio of suspect and
@@ -419,7 +419,7 @@ def register_global(suspect, original, *, spacing, target=4000, scales=SCALES,
     scales : sequence of float
         Scale hypotheses, as factors on the spacing ratio.
     iterations : int
-        RANSAC samples per hypothesis.
+        RANSAC samples per hypothesis (``detection.ransac_iterations``).
     good : float
         The search ends at the first hypothesis whose fitness and coverage
         both reach this, with a residual under 2 spacings.

@@ -623,7 +623,7 @@ def estimate_differences(suspect, reference, specs, bases, detect_params, params
     if normals is None and detect_params.correspondence != "paper":
         normals = resampling.estimate_normals(reference)      # once, for the registration and the fit
     tree = cKDTree(reference)
-    transform = _register(suspect, reference, float(np.median(spacing)), detect_params.registration, tree, normals)
+    transform = _register(suspect, reference, float(np.median(spacing)), detect_params, tree, normals)
     aligned = registration.apply(transform, suspect)
     fitness, coverage, _ = registration.overlap(aligned, tree, _coverage_sample(reference),
                                                 3.0 * float(np.median(spacing)))
@@ -692,7 +692,9 @@ def _coverage_sample(reference):
     return reference[:: max(1, len(reference) // 4000)]
 
 
-def _register(suspect, reference, spacing, method, tree, normals=None):
+def _register(suspect, reference, spacing, detect_params, tree, normals=None):
+    """Suspect-to-reference similarity by ``detect_params.registration``, with its effort settings."""
+    method = detect_params.registration
     if method == "none":
         return registration.Similarity(np.eye(3), 1.0, np.zeros(3))
     if method == "paper":
@@ -700,7 +702,8 @@ def _register(suspect, reference, spacing, method, tree, normals=None):
     if method == "global":
         from . import features   # open3d: imported only when used
 
-        return features.register_global(suspect, reference, spacing=spacing).transform
+        return features.register_global(suspect, reference, spacing=spacing,
+                                        iterations=detect_params.ransac_iterations).transform
     robust = registration.register_robust(suspect, reference, spacing=spacing)
     # a whole copy overlaps the original from both sides; a part of it, the
     # asset among clutter or junk, or a fit collapsed to a tiny scale (every
@@ -725,12 +728,15 @@ def _register(suspect, reference, spacing, method, tree, normals=None):
     if placed is not None:   # the original, whole, on one of the suspect's objects
         tried = [robust, placed]
     else:
-        tried = [robust, features.register_global(suspect, reference, spacing=spacing).transform]
+        tried = [robust, features.register_global(suspect, reference, spacing=spacing,
+                                                  iterations=detect_params.ransac_iterations).transform]
     ranked = [features.overlap_of(t, suspect, reference, spacing) for t in tried]
     best = tried[features.best_overlap(ranked)]
     if features.needs_search(best, suspect, reference, spacing):
         # a part laid loosely on a smooth shape, where features mislead: search every rotation
-        searched = features.register_search(suspect, reference, spacing=spacing, normals=normals)
+        searched = features.register_search(suspect, reference, spacing=spacing, normals=normals,
+                                            rotations=detect_params.search_rotations,
+                                            poses=detect_params.search_poses)
         if searched is not None:
             tried.append(searched)
             ranked.append(features.overlap_of(searched, suspect, reference, spacing))

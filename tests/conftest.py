@@ -70,14 +70,50 @@ SMALL_WATERMARK = {
     "code": "repetition",
 }
 
+# The registration's effort in those bookkeeping worlds, a tenth of the default: their suspects are whole
+# copies, or no copy at all, and what is under test is the scan's and the ledger's bookkeeping, not the
+# search for a part's pose (tests/test_features.py and tests/test_robustness_part.py test that at the
+# default effort).  An innocent candidate's check costs about half as much.
+SMALL_DETECTION = {"ransac_iterations": 2000, "search_rotations": 100, "search_poses": 8}
 
-@pytest.fixture(scope="module")
-def inprocess_cluster():
-    """A Dask cluster in this process (one worker thread) for scans run through ``cli.main`` here."""
-    from distributed import LocalCluster
 
-    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0") as c:
-        yield c
+@pytest.fixture(scope="session", autouse=True)
+def shared_cluster():
+    """One LocalCluster for the session, started as ``start_client`` starts one (two spawned workers).
+
+    Its address is Dask's ``scheduler-address`` here and ``DASK_SCHEDULER_ADDRESS`` for the
+    subprocesses, so every run, scan and evaluation with no ``dask.address`` uses it instead of
+    starting a cluster of its own (a few seconds each).  Tests of the LocalCluster itself, and of
+    runs killed mid-way (whose tasks must die with them), take :func:`own_cluster`.
+    """
+    import dask
+
+    from pipeline import config
+    from pipeline.orchestrate.run import start_client
+
+    client, cluster = start_client(config.load_config(None, ["dask.n_workers=2"]))
+    client.close()
+    previous = os.environ.get("DASK_SCHEDULER_ADDRESS")
+    os.environ["DASK_SCHEDULER_ADDRESS"] = cluster.scheduler_address
+    try:
+        with dask.config.set({"scheduler-address": cluster.scheduler_address}):
+            yield cluster
+    finally:
+        if previous is None:
+            os.environ.pop("DASK_SCHEDULER_ADDRESS", None)
+        else:
+            os.environ["DASK_SCHEDULER_ADDRESS"] = previous
+        cluster.close()
+
+
+@pytest.fixture()
+def own_cluster(monkeypatch):
+    """No shared scheduler: runs without ``dask.address`` start their own LocalCluster."""
+    import dask
+
+    monkeypatch.delenv("DASK_SCHEDULER_ADDRESS", raising=False)
+    with dask.config.set({"scheduler-address": None}):
+        yield
 
 
 class ScanIndexes:

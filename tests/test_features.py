@@ -4,10 +4,13 @@ import numpy as np
 import pytest
 
 from pipeline import demo, features, surface
+from pipeline.config import DetectParams
 from pipeline.io.pointcloud import read_points
 from pipeline.kernels import attacks, registration
 from pipeline.kernels.descriptor import CUT_DIRECTIONS, CUT_FRACTIONS, d2_descriptor, descriptor_distance
 from pipeline.kernels.resampling import nearest_spacing
+
+EFFORT = DetectParams(registration="robust")     # the default registration and its default effort
 
 INDEX_MODELS = ["bunny_zipper_faceref_34834", "kitten_12623", "nikolov_owl_12442", "fandisk_cad_6475",
                 "fertility_4494", "nikolov_birdbath_18793", "nikolov_blackvase_17337", "spot_cow_2930",
@@ -31,7 +34,7 @@ def test_a_30_percent_crop_is_registered_at_any_scale(models, scale):
     part = attacks.crop(kitten, 0.3, rng)
     rot = attacks.random_rotation(rng)
     suspect = attacks.similarity(part, rot, scale, [1.0, 2.0, -3.0])
-    found = features.register_global(suspect, kitten, spacing=spacing)
+    found = features.register_global(suspect, kitten, spacing=spacing, iterations=EFFORT.ransac_iterations)
     assert not found.failed()
     assert abs(found.transform.scale * scale - 1.0) < 0.01
     assert _aligned_error(found.transform, suspect, part) < 0.1 * spacing
@@ -46,7 +49,8 @@ def test_the_asset_is_found_in_a_scene_of_other_models(models):
     moved = attacks.similarity(owl, attacks.random_rotation(rng), 0.7, [5.0, 0.0, 0.0])
     scene = attacks.scene(moved, others, 3.0, rng)
     assert len(scene) == pytest.approx(4 * len(owl), rel=0.01)
-    found = features.register_global(scene[rng.permutation(len(scene))], owl, spacing=spacing)
+    found = features.register_global(scene[rng.permutation(len(scene))], owl, spacing=spacing,
+                                     iterations=EFFORT.ransac_iterations)
     assert not found.failed() and found.coverage > 0.95
     assert _aligned_error(found.transform, moved, owl) < 0.1 * spacing
 
@@ -241,7 +245,7 @@ def test_detection_registers_a_crop_of_a_smooth_shape(kind, chain):
     rot, scale = attacks.random_rotation(rng), 3.0
     placed = attacks.similarity(part, rot, scale, [4.0, -1.0, 2.0])
     suspect = attacks.apply_chain(placed, steps[2:], rng)
-    found = _register(suspect, shape, spacing, "robust", cKDTree(shape))
+    found = _register(suspect, shape, spacing, EFFORT, cKDTree(shape))
     assert _aligned_error(found, placed, part) < 0.1 * spacing      # the pose, not the noise
     assert not features.needs_search(found, suspect, shape, spacing)
     # a pose a few spacings off along the surface fits loosely: searched again
@@ -253,7 +257,8 @@ def test_the_rotation_search_declines_a_suspect_without_spacing():
     shape = demo.procedural_shape("blob", 2000, seed=1) * 20
     spacing = float(np.median(nearest_spacing(shape)))
     coincident = np.repeat(shape[:1], 100, axis=0)       # one point 100 times: no spacing, no scale
-    assert features.register_search(coincident, shape, spacing=spacing) is None
+    assert features.register_search(coincident, shape, spacing=spacing, rotations=EFFORT.search_rotations,
+                                     poses=EFFORT.search_poses) is None
 
 
 def test_two_originals_differing_in_one_point_never_share_registration_state():

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from pipeline import config, surface
+from pipeline.config import DetectParams
 from pipeline.io.pointcloud import read_points
 from pipeline.kernels import attacks, keys, modulation
 from pipeline.watermark import (cluster_basis, decode, embed_with_bases, estimate_differences, frame_of,
@@ -109,6 +110,6 @@ def test_junk_near_a_small_scan_does_not_shrink_its_registration(shared_data, na
     spacing = float(np.median(resampling.nearest_spacing(points)))
     for seed in range(2):
         suspect = attacks.apply_chain(points, [("outliers", 0.5), ("shuffle", None)], np.random.default_rng(seed))
-        found = _register(suspect, points, spacing, "robust", cKDTree(points))
+        found = _register(suspect, points, spacing, DetectParams(registration="robust"), cKDTree(points))
         assert abs(found.scale - 1.0) < 2e-3, (seed, found.scale)
         assert found.fitness > 0.6

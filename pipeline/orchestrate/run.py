@@ -302,7 +302,11 @@ def _error_text(exc):
 
 
 def start_client(cfg):
-    """A Dask client: to ``dask.address`` if set, else on a new LocalCluster.
+    """A Dask client: to ``dask.address`` if set, else Dask's ``scheduler-address``, else on a new LocalCluster.
+
+    Dask's ``scheduler-address`` is its own setting (the environment variable
+    ``DASK_SCHEDULER_ADDRESS`` or its YAML config), as set by a workflow
+    engine or a job script that started the cluster.
 
     LocalCluster workers are spawned processes with one thread each, BLAS
     threads pinned to one (SciPy's ARPACK holds a process-wide lock; open3d
@@ -312,8 +316,10 @@ def start_client(cfg):
     from distributed import Client, LocalCluster
 
     settings = cfg["dask"]
-    if settings["address"]:
-        return Client(settings["address"], timeout="30s"), None
+    # an existing scheduler: the config's, else Dask's own setting (DASK_SCHEDULER_ADDRESS), as Dask's Client reads it
+    address = settings["address"] or dask.config.get("scheduler-address", None)
+    if address:
+        return Client(address, timeout="30s"), None
     dask.config.set({"distributed.worker.multiprocessing-method": "spawn",
                      "distributed.nanny.pre-spawn-environ": WORKER_ENV,
                      # the statistical profiler samples stacks every 10 ms under the GIL:

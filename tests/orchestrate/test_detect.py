@@ -10,7 +10,7 @@ import pytest
 from pipeline.io.ledger import Ledger
 from pipeline.io.pointcloud import read_points, write_array, sha256_file
 from pipeline.kernels import attacks
-from tests.conftest import ROOT, SMALL_WATERMARK
+from tests.conftest import ROOT, SMALL_DETECTION, SMALL_WATERMARK
 from tests.readonly import frozen, tree_bytes, unprivileged
 from tests.orchestrate.test_run import SECRET, _run, make_catalogue, write_config
 
@@ -21,7 +21,8 @@ pytestmark = pytest.mark.slow
 def issued(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("detect")
     src = make_catalogue(tmp / "assets", n_assets=2)
-    job, counts = _run(write_config(tmp, src, extra={"watermark": SMALL_WATERMARK}), serial=True)
+    job, counts = _run(write_config(tmp, src, extra={"watermark": SMALL_WATERMARK, "detection": SMALL_DETECTION}),
+                       serial=True)
     assert counts["ok"] == 2
     return tmp, job.manifests
 
@@ -85,7 +86,8 @@ def test_a_scene_holding_a_copy_is_found_by_the_scans_candidate_search(issued):
 
 def test_an_unmarked_original_is_no_match(issued):
     tmp, ledger = issued
-    res = _cli(tmp, "detect", str(tmp / "assets" / "asset-0.ply"), "--ledger", str(ledger), "--json")
+    effort = [a for k, v in SMALL_DETECTION.items() for a in ("--set", f"{k}={v}")]
+    res = _cli(tmp, "detect", str(tmp / "assets" / "asset-0.ply"), "--ledger", str(ledger), "--json", *effort)
     out = json.loads(res.stdout)
     assert res.returncode == 0 and out["verdict"] == "no match" and out["accused"] == []
     assert out["n_candidates_checked"] == len(out["candidates"]) == 2     # no match: every candidate checked
@@ -102,7 +104,7 @@ def test_a_short_or_wrong_secret_is_refused(issued, secret, needle):
 
 
 def test_an_unmarked_original_is_never_a_match_whatever_the_hash_table_holds(issued, tmp_path, capsys,
-                                                                             inprocess_cluster, scan_indexes):
+                                                                             shared_cluster, scan_indexes):
     """A forged ledger row claims the original's own bytes as an issued copy: the scan still says no match."""
     import yaml
 
@@ -126,7 +128,7 @@ def test_an_unmarked_original_is_never_a_match_whatever_the_hash_table_holds(iss
     cfg["output"]["manifests"] = str(ledger)
     cfg["scan"] = {"suspects": str(tmp_path / "suspects"), "catalogue": str(tmp_path / "catalog.parquet"),
                    "out": str(tmp_path / "scan")}
-    cfg["dask"]["address"] = inprocess_cluster.scheduler_address      # the scan runs here, through the CLI
+    cfg["dask"]["address"] = shared_cluster.scheduler_address      # the scan runs here, through the CLI
     (tmp_path / "scan.yaml").write_text(yaml.safe_dump(cfg))
     scan_indexes.seed(tmp_path / "scan")
     code = cli.main(["scan", str(tmp_path / "scan.yaml")])

@@ -164,7 +164,7 @@ def test_a_changed_clustering_constant_fails_detection_with_a_digest_mismatch(tm
         detect_from_ledger(copy, job.manifests, SECRET.encode(), dparams, store=tmp_path / "other-store")
 
 
-def test_worker_processes_never_hold_the_master_secret(tmp_path, monkeypatch):
+def test_worker_processes_never_hold_the_master_secret(tmp_path, monkeypatch, own_cluster):
     from pipeline.orchestrate.run import start_client
 
     monkeypatch.setenv("POINTMARK_SECRET", SECRET)
@@ -238,7 +238,7 @@ def test_a_beta_too_small_to_change_the_file_is_refused(tmp_path):
     assert not [p for p in (tmp_path / "out" / "marked").rglob("*") if p.is_file()]
 
 
-def test_cli_exit_status_and_secret_never_in_ledger_or_logs(tmp_path):
+def test_cli_exit_status_and_secret_never_in_ledger_or_logs(tmp_path, own_cluster):
     src = make_catalogue(tmp_path / "assets", n_assets=2)
     (src / "bad.xyz").write_text("1 2 3\nnot numbers at all\n")
     cfg = write_config(tmp_path, src)
@@ -305,7 +305,7 @@ def test_run_through_an_existing_scheduler_with_two_worker_processes(tmp_path):
                 p.kill()
 
 
-def test_an_interrupted_run_resumes_and_issues_each_copy_once(tmp_path):
+def test_an_interrupted_run_resumes_and_issues_each_copy_once(tmp_path, own_cluster):
     src = make_catalogue(tmp_path / "assets", n_assets=6)
     cfg = write_config(tmp_path, src, extra={"dask": {"n_workers": 1}})
     env = dict(os.environ, PYTHONPATH=str(ROOT))

@@ -27,7 +27,7 @@ from pipeline.kernels import attacks
 from pipeline.orchestrate.run import plan_job, run_job
 from pipeline.orchestrate.progress import Progress
 from pipeline.orchestrate.scan import read_scan
-from tests.conftest import SMALL_WATERMARK
+from tests.conftest import SMALL_DETECTION, SMALL_WATERMARK
 from tests.orchestrate.test_run import SECRET, _run, make_catalogue, write_config
 
 pytestmark = pytest.mark.slow
@@ -35,11 +35,11 @@ NEW_SECRET = "rotated-secret-for-carol-5e1"
 
 
 @pytest.fixture(scope="module")
-def world(tmp_path_factory, inprocess_cluster, scan_indexes):
+def world(tmp_path_factory, shared_cluster, scan_indexes):
     tmp = tmp_path_factory.mktemp("hostile")
     src = make_catalogue(tmp / "assets", n_assets=2)
-    cfg_path = write_config(tmp, src, extra={"watermark": SMALL_WATERMARK,
-                                             "dask": {"address": inprocess_cluster.scheduler_address}})
+    cfg_path = write_config(tmp, src, extra={"watermark": SMALL_WATERMARK, "detection": SMALL_DETECTION,
+                                             "dask": {"address": shared_cluster.scheduler_address}})
     _run(cfg_path, serial=True)
     write_catalogue([catalogue_record(a) for a in discover_assets(src)], tmp / "catalog.parquet")
     _INDEXES.append(scan_indexes)

@@ -19,7 +19,7 @@ from pipeline.io.catalog import catalogue_record, discover_assets, write_catalog
 from pipeline.io.pointcloud import read_points, sha256_file, write_array
 from pipeline.kernels import attacks
 from pipeline.orchestrate.scan import read_scan
-from tests.conftest import SMALL_WATERMARK
+from tests.conftest import SMALL_DETECTION, SMALL_WATERMARK
 from tests.orchestrate.test_run import _run, make_catalogue, write_config
 
 pytestmark = pytest.mark.slow
@@ -57,12 +57,12 @@ def _latest(tmp):
 
 
 @pytest.fixture(scope="module")
-def _built(tmp_path_factory, inprocess_cluster):
+def _built(tmp_path_factory, shared_cluster):
     root = tmp_path_factory.mktemp("verdicts")
     tmp = root / "world"
     src = make_catalogue(tmp / "assets", n_assets=2)
-    cfg_path = write_config(tmp, src, extra={"watermark": SMALL_WATERMARK,
-                                             "dask": {"address": inprocess_cluster.scheduler_address}})
+    cfg_path = write_config(tmp, src, extra={"watermark": SMALL_WATERMARK, "detection": SMALL_DETECTION,
+                                             "dask": {"address": shared_cluster.scheduler_address}})
     _run(cfg_path, serial=True)
     write_catalogue([catalogue_record(a) for a in discover_assets(src)], tmp / "catalog.parquet")
     points = read_points(tmp / "out" / "marked" / "bob" / "asset-0.ply").points
