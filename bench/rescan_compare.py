@@ -21,7 +21,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 
-N_LEAKS, N_NEGATIVES = 42, 7
+N_LEAKS, N_NEGATIVES = 60, 20
 WORK = ROOT / "bench" / "results" / "leaks"
 
 
@@ -55,6 +55,7 @@ def scan(name):
     from pipeline.orchestrate.scan import run_scan
 
     cfg = leaks._config(WORK, WORK / "manifests", WORK / "marked", "bench")
+    cfg["dask"]["n_workers"] = int(__import__("os").environ.get("RESCAN_WORKERS", "1"))
     cfg["scan"]["suspects"], cfg["scan"]["out"] = str(WORK / "compare" / "suspects"), str(WORK / "compare" / name)
     t0 = time.perf_counter()
     status = run_scan(cfg, leaks.SECRET)
