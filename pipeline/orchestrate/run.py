@@ -319,7 +319,11 @@ def start_client(cfg):
     # an existing scheduler: the config's, else Dask's own setting (DASK_SCHEDULER_ADDRESS), as Dask's Client reads it
     address = settings["address"] or dask.config.get("scheduler-address", None)
     if address:
-        return Client(address, timeout="30s"), None
+        source = "dask.address" if settings["address"] else "Dask's scheduler-address (DASK_SCHEDULER_ADDRESS)"
+        try:
+            return Client(address, timeout="30s"), None
+        except OSError as exc:          # said with where the address came from, before anything is written
+            raise OSError(f"{source} {address}: the scheduler cannot be reached ({exc})") from None
     dask.config.set({"distributed.worker.multiprocessing-method": "spawn",
                      "distributed.nanny.pre-spawn-environ": WORKER_ENV,
                      # the statistical profiler samples stacks every 10 ms under the GIL:
