@@ -37,8 +37,10 @@ setup: $(STAMP) $(NPM_STAMP)
 demo: setup
 	$(VENV)/bin/pointmark demo
 
+# two test processes side by side (each file's tests in one of them, so a module's world is built once)
+TEST_JOBS ?= 2
 test: setup
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_JOBS) --dist loadfile
 
 bench: setup
 	$(PY) bench/run.py

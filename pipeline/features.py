@@ -21,6 +21,7 @@ from __future__ import annotations
 import hashlib
 import io
 import time
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -199,16 +200,20 @@ class _Original:
         return self._normals
 
 
-_CACHE: dict = {}
+_CACHE: "OrderedDict[tuple, _Original]" = OrderedDict()
+CACHED_ORIGINALS = 8     # originals whose registration state a process keeps (a worker checks the same few often)
 
 
 def _original(points, spacing, target, normals=None):
     # keyed by the hash of every coordinate: two originals that differ in one point never share state
     content = np.ascontiguousarray(points, dtype=np.float64)
     key = (points.shape, hashlib.sha256(content.tobytes()).hexdigest(), float(spacing), target)
-    if key not in _CACHE:
-        _CACHE.clear()
-        _CACHE[key] = _Original(points, spacing, target)
+    if key in _CACHE:
+        _CACHE.move_to_end(key)
+    else:
+        _CACHE[key] = _Original(content.copy(), spacing, target)     # a copy: the caller's array may change
+        while len(_CACHE) > CACHED_ORIGINALS:
+            _CACHE.popitem(last=False)
     if normals is not None and _CACHE[key]._normals is None:
         _CACHE[key]._normals = normals
     return _CACHE[key]

@@ -79,7 +79,7 @@ SMALL_DETECTION = {"ransac_iterations": 2000, "search_rotations": 100, "search_p
 
 @pytest.fixture(scope="session", autouse=True)
 def shared_cluster():
-    """One LocalCluster for the session, started as ``start_client`` starts one (two spawned workers).
+    """One LocalCluster for the session, started as ``start_client`` starts one (spawned workers).
 
     Its address is Dask's ``scheduler-address`` here and ``DASK_SCHEDULER_ADDRESS`` for the
     subprocesses, so every run, scan and evaluation with no ``dask.address`` uses it instead of
@@ -91,7 +91,9 @@ def shared_cluster():
     from pipeline import config
     from pipeline.orchestrate.run import start_client
 
-    client, cluster = start_client(config.load_config(None, ["dask.n_workers=2"]))
+    # two workers, or one per pytest-xdist process (``make test`` runs two side by side)
+    workers = 1 if os.environ.get("PYTEST_XDIST_WORKER") else 2
+    client, cluster = start_client(config.load_config(None, [f"dask.n_workers={workers}"]))
     client.close()
     previous = os.environ.get("DASK_SCHEDULER_ADDRESS")
     os.environ["DASK_SCHEDULER_ADDRESS"] = cluster.scheduler_address

@@ -274,3 +274,19 @@ def test_two_originals_differing_in_one_point_never_share_registration_state():
     assert ta is not tb
     assert np.array_equal(tb.tree.data, b) and not np.array_equal(tb.tree.data, a)
     assert _original(a, 0.02, 4000).tree.data[1001].tolist() == a[1001].tolist()
+
+
+def test_registration_state_is_kept_per_original_and_never_follows_an_array_changed_in_place():
+    from pipeline.demo import procedural_shape
+    from pipeline.features import CACHED_ORIGINALS, _original
+
+    a, b = procedural_shape("blob", 3000, seed=4), procedural_shape("torus", 3000, seed=5)
+    ta, tb = _original(a, 0.02, 4000), _original(b, 0.02, 4000)
+    assert _original(a, 0.02, 4000) is ta and _original(b, 0.02, 4000) is tb     # alternating checks reuse both
+    kept = a.copy()
+    a[7] += 1.0                                           # the caller edits its array after the first call
+    assert np.array_equal(ta.tree.data, kept)            # the state kept is of the bytes it was built from
+    assert _original(a, 0.02, 4000) is not ta and np.array_equal(_original(a, 0.02, 4000).tree.data, a)
+    for seed in range(CACHED_ORIGINALS):                  # bounded: the least recently used goes first
+        _original(procedural_shape("shell", 500, seed=10 + seed), 0.02, 4000)
+    assert _original(b, 0.02, 4000) is not tb
