@@ -83,8 +83,10 @@ def shared_cluster():
 
     Its address is Dask's ``scheduler-address`` here and ``DASK_SCHEDULER_ADDRESS`` for the
     subprocesses, so every run, scan and evaluation with no ``dask.address`` uses it instead of
-    starting a cluster of its own (a few seconds each).  Tests of the LocalCluster itself, and of
-    runs killed mid-way (whose tasks must die with them), take :func:`own_cluster`.
+    starting a cluster of its own (a few seconds each).  Its workers work in the folder pytest
+    started in, so runs and scans in other folders (the Snakefile's) check that tasks are given
+    absolute paths.  Tests of the LocalCluster itself, and of runs killed mid-way (whose tasks must
+    die with them), take :func:`own_cluster`.
     """
     import dask
 

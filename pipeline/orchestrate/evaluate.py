@@ -9,6 +9,7 @@ bases of a model are computed once per cluster parameters, cached as a
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 from dataclasses import replace
@@ -327,15 +328,17 @@ def run_evaluation(cfg, secret):
     t0 = time.perf_counter()
     client, cluster = start_client(cfg)
     try:
-        prep = {name: client.submit(prepare_bases, src, _basis_params(params, k), str(cache), pure=False)
+        # absolute paths: a worker of an existing cluster has its own working directory
+        prep = {name: client.submit(prepare_bases, os.path.abspath(src), _basis_params(params, k),
+                                    os.path.abspath(cache), pure=False)
                 for name, (k, src, params) in need.items()}
         futures = {}
         for exp, model, params, chain, method, seed in trials:
-            fut = client.submit(trial, model, prep[_prep_key(model, params)], params, detect_params,
+            fut = client.submit(trial, os.path.abspath(model), prep[_prep_key(model, params)], params, detect_params,
                                 chain, method, seed, material, pure=False)
             futures[fut] = exp
         for exp, model, params, chain, case, seed, n_recipients in fp_trials:
-            fut = client.submit(fingerprint_trial, model, prep[_prep_key(model, params)], params, detect_params,
+            fut = client.submit(fingerprint_trial, os.path.abspath(model), prep[_prep_key(model, params)], params, detect_params,
                                 chain, case, seed, material, n_recipients, pure=False)
             futures[fut] = exp
         fp_futures = []
@@ -344,7 +347,7 @@ def run_evaluation(cfg, secret):
             for _, model, params, *_ in trials:
                 if model not in seen and "/meshes/" not in model:
                     seen.add(model)
-                    fp_futures.append(client.submit(false_positives, model, prep[_prep_key(model, params)],
+                    fp_futures.append(client.submit(false_positives, os.path.abspath(model), prep[_prep_key(model, params)],
                                                     params, detect_params, material, ev["false_positive_keys"],
                                                     pure=False))
         rows, fingerprint_rows, errors, done = [], [], [], 0

@@ -507,8 +507,9 @@ def _run_dask(job, todo, cfg, progress, client):
             _finish_asset(job, item, _failed_rows(job, item, item.error), results, progress)
             continue
         _start_asset(job, item)
-        fut = client.submit(tasks.plan_asset, item.key, str(item.path), item.source_sha256, item.params,
-                            str(job.store), _row_base(job, item)["reference_key"],
+        # absolute paths: a worker of an existing cluster has its own working directory
+        fut = client.submit(tasks.plan_asset, item.key, os.path.abspath(item.path), item.source_sha256, item.params,
+                            os.path.abspath(job.store), _row_base(job, item)["reference_key"],
                             cfg["output"]["keep_originals"], key=f"plan-{job.run_id}-{item.key}", pure=False)
         stage[fut.key] = ("plan", item, None)
         pending.add(fut)

@@ -59,6 +59,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import sys
 import time
 from collections import defaultdict
@@ -258,7 +259,9 @@ def run_scan(cfg, secret, *, force=False):
     counts["skipped"] = len(done)
     client, cluster = start_client(cfg)
     try:
-        triages = {client.submit(triage, str(p), descriptors, index_path, pure=False): p
+        # absolute paths: a worker of an existing cluster has its own working directory
+        index_path = index_path and os.path.abspath(index_path)
+        triages = {client.submit(triage, os.path.abspath(p), descriptors, index_path, pure=False): p
                    for p in readable if p not in done}
         pending = as_completed(list(triages))
         waiting = {}
@@ -269,7 +272,7 @@ def run_scan(cfg, secret, *, force=False):
                     _record(out, versions, {"suspect_path": str(path)}, "failed", error=_text(fut.exception()))
                     counts["failed"] += 1
                     continue
-                info = fut.result()
+                info = {**fut.result(), "path": str(path)}          # recorded as the folder listed it
                 prev = previous.get(info["sha256"])
                 if _already(prev, versions, ref["keys_held"]):   # the same bytes twice in the folder
                     counts["skipped"] += 1
@@ -395,8 +398,8 @@ def _submit_next(client, info, materials, store, detect_params, waiting, pending
     if not info["queue"]:
         return False
     rows, places = info["queue"].pop(0)
-    fut = client.submit(check_asset, info["path"], rows, materials, store, detect_params, places=places,
-                        pure=False, priority=1)
+    fut = client.submit(check_asset, os.path.abspath(info["path"]), rows, materials, os.path.abspath(store),
+                        detect_params, places=[os.path.abspath(p) for p in places], pure=False, priority=1)
     waiting[fut] = info
     pending.add(fut)
     return True
