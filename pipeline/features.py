@@ -202,6 +202,7 @@ class _Original:
 
 _CACHE: "OrderedDict[tuple, _Original]" = OrderedDict()
 CACHED_ORIGINALS = 8     # originals whose registration state a process keeps (a worker checks the same few often)
+CACHED_BYTES = 512 * 2**20   # and at most about this much of it (points, tree, normals: ~4 copies of the points)
 
 
 def _original(points, spacing, target, normals=None):
@@ -212,8 +213,9 @@ def _original(points, spacing, target, normals=None):
         _CACHE.move_to_end(key)
     else:
         _CACHE[key] = _Original(content.copy(), spacing, target)     # a copy: the caller's array may change
-        while len(_CACHE) > CACHED_ORIGINALS:
-            _CACHE.popitem(last=False)
+        while len(_CACHE) > 1 and (len(_CACHE) > CACHED_ORIGINALS
+                                   or sum(4 * o.points.nbytes for o in _CACHE.values()) > CACHED_BYTES):
+            _CACHE.popitem(last=False)                  # the least recently used first; the newest stays
     if normals is not None and _CACHE[key]._normals is None:
         _CACHE[key]._normals = normals
     return _CACHE[key]

@@ -70,7 +70,8 @@ SMALL_WATERMARK = {
     "code": "repetition",
 }
 
-# The registration's effort in those bookkeeping worlds, a tenth of the default: their suspects are whole
+# The registration's effort in those bookkeeping worlds, about a tenth of the default (a sixth of the
+# refined poses): their suspects are whole
 # copies, or no copy at all, and what is under test is the scan's and the ledger's bookkeeping, not the
 # search for a part's pose (tests/test_features.py and tests/test_robustness_part.py test that at the
 # default effort).  An innocent candidate's check costs about half as much.
@@ -95,18 +96,24 @@ def shared_cluster():
 
     # two workers, or one per pytest-xdist process (``make test`` runs two side by side)
     workers = 1 if os.environ.get("PYTEST_XDIST_WORKER") else 2
+    before = dict(os.environ)
     client, cluster = start_client(config.load_config(None, [f"dask.n_workers={workers}"]))
-    client.close()
-    previous = os.environ.get("DASK_SCHEDULER_ADDRESS")
-    os.environ["DASK_SCHEDULER_ADDRESS"] = cluster.scheduler_address
+    # a nanny sets its workers' pinned environment (PYTHONHASHSEED, thread counts) in the process that
+    # starts it: the tests and their subprocesses keep this process's own, or the determinism tests
+    # across processes would all run under one hash seed
+    os.environ.clear()
+    os.environ.update(before, DASK_SCHEDULER_ADDRESS=cluster.scheduler_address)
     try:
         with dask.config.set({"scheduler-address": cluster.scheduler_address}):
             yield cluster
+        # the workers of a cluster that outlived every test never held a secret (a respawned one
+        # would take the environment of its moment)
+        seen = client.run(lambda: sorted(k for k in __import__("os").environ if "SECRET" in k))
+        assert all(found == [] for found in seen.values()), seen
     finally:
-        if previous is None:
-            os.environ.pop("DASK_SCHEDULER_ADDRESS", None)
-        else:
-            os.environ["DASK_SCHEDULER_ADDRESS"] = previous
+        client.close()
+        os.environ.clear()
+        os.environ.update(before)
         cluster.close()
 
 

@@ -87,7 +87,6 @@ def _defaulted_parameters():
 # parameters that share a config key's name but not its meaning
 _OTHER_MEANING = {
     ("pipeline/demo.py", "_bumps", "amplitude"),                    # height of the demo shapes' bumps
-    ("pipeline/features.py", "register_global", "iterations"),      # RANSAC draws
     ("pipeline/features.py", "train", "iterations"),                # k-means rounds
     ("pipeline/kernels/modulation.py", "along_normals", "iterations"),
     ("pipeline/kernels/registration.py", "icp_similarity", "iterations"),

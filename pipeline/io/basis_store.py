@@ -32,7 +32,7 @@ import numpy as np
 
 from .pointcloud import atomic_write_bytes
 
-__all__ = ["BasisStore", "reference_params", "stand_in", "find_file", "write_file", "STORE_VERSION"]
+__all__ = ["BasisStore", "reference_params", "stand_in", "find_file", "read_file", "write_file", "STORE_VERSION"]
 
 STORE_VERSION = 1
 _REFERENCE_FIELDS = ("n_bits", "crc_bits", "chip_rate", "first_coefficient", "valence", "n_clusters",
@@ -104,6 +104,11 @@ def find_file(folder, relative):
         except OSError:          # a stand-in this user cannot search: as if absent
             pass
     return found
+
+
+def read_file(path):
+    """The bytes of a file :func:`find_file` found (an index, a kept state file)."""
+    return Path(path).read_bytes()
 
 
 def write_file(folder, relative, data):

@@ -10,24 +10,40 @@ threshold is corrected for all of them whichever check stops the search.
 
 from __future__ import annotations
 
-import functools
+import hashlib
+import io
 import time
 import zipfile
+from collections import OrderedDict
 
 import numpy as np
 
-from ..io.basis_store import find_file, write_file
+from ..io.basis_store import find_file, read_file, write_file
 from ..io.pointcloud import InputError, read_points, sha256_file
 from ..kernels.descriptor import d2_descriptor, descriptor_distance
 
 __all__ = ["triage", "candidates", "build_index", "load_index", "planned_recipients", "INDEX_FORMAT", "MIN_POINTS"]
 
 
-@functools.lru_cache(maxsize=2)
+_INDEXES: "OrderedDict[str, object]" = OrderedDict()    # sha256 of an index file -> its FeatureIndex
+
+
 def load_index(path):
+    """The :class:`~pipeline.features.FeatureIndex` in ``path``, kept per process by its bytes' sha256.
+
+    A long-lived worker scans night after night: an index rebuilt at the same path is read again.
+    """
     from ..features import FeatureIndex
 
-    return FeatureIndex.load(path)
+    data = read_file(path)
+    key = hashlib.sha256(data).hexdigest()
+    if key in _INDEXES:
+        _INDEXES.move_to_end(key)
+    else:
+        _INDEXES[key] = FeatureIndex.load(io.BytesIO(data))
+        while len(_INDEXES) > 2:
+            _INDEXES.popitem(last=False)
+    return _INDEXES[key]
 
 
 MIN_POINTS = 16     # under this a suspect's shape and marks cannot be measured: failed, never ranked

@@ -221,13 +221,11 @@ def _result_path(out, sha, versions, failed=False):
 
 def run_scan(cfg, secret, *, force=False):
     """``pointmark scan``: returns the exit status."""
-    from distributed import as_completed
-
     from .run import start_client
 
     sc = cfg["scan"]
     ref = _reference(cfg, secret)
-    ledger, materials, issued, paths = ref["ledger"], ref["materials"], ref["issued"], ref["paths"]
+    ledger = ref["ledger"]
     versions = (ledger.version(), ref["cat_version"])
     out = Path(sc["out"])
     suspects, others = _suspects(sc["suspects"], out)
@@ -239,8 +237,30 @@ def run_scan(cfg, secret, *, force=False):
     store = ref["store"]
     check_disjoint(("scan.out", out), [("the ledger", ledger.folder), ("the basis store", store),
                                       ("output.dir", cfg["output"]["dir"])])
+    client, cluster = start_client(cfg)          # the scheduler is reached before anything is written
+    try:
+        counts, notices = _scan(client, cfg, ref, out, versions, suspects, others, force)
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+    summary = write_summary(read_scan(out), out / "report.md", detect_params.epsilon, notices)
+    print(f"scanned {len(suspects)} suspects in {counts.pop('seconds'):.0f}s: {counts['match']} match, "
+          f"{counts['inconclusive']} inconclusive, {counts['no match']} no match, {counts['failed']} failed, "
+          f"{counts['skipped']} already scanned; results in {out}, evidence report {summary}")
+    if counts["failed"]:
+        return 3
+    return 1 if counts["match"] else 0
+
+
+def _scan(client, cfg, ref, out, versions, suspects, others, force):
+    """The scan's work once the scheduler is reached: the verdict counts (and seconds) and the notices."""
+    from distributed import as_completed
+
+    sc, store, detect_params = cfg["scan"], ref["store"], config_mod.detect_params(cfg)
+    materials, issued, paths = ref["materials"], ref["issued"], ref["paths"]
     out.mkdir(parents=True, exist_ok=True)
-    state = _save_state(out, versions, [p.name for p in ledger.parts()], ref["assets"])
+    state = _save_state(out, versions, [p.name for p in ref["ledger"].parts()], ref["assets"])
     index_path, descriptors = _ranked_by(ref, out)
     notices = _notices(ref, others)
     for line in notices:
@@ -257,69 +277,57 @@ def run_scan(cfg, secret, *, force=False):
     # work (hashing is cheap; ranking a suspect against the catalogue is not)
     done = {p for p in readable if previous and _already(previous.get(_sha_or_none(p)), versions, ref["keys_held"])}
     counts["skipped"] = len(done)
-    client, cluster = start_client(cfg)
-    try:
-        # absolute paths: a worker of an existing cluster has its own working directory
-        index_path = index_path and os.path.abspath(index_path)
-        triages = {client.submit(triage, os.path.abspath(p), descriptors, index_path, pure=False): p
-                   for p in readable if p not in done}
-        pending = as_completed(list(triages))
-        waiting = {}
-        for fut in pending:
-            if fut in triages:
-                path = triages.pop(fut)
-                if fut.status != "finished":
-                    _record(out, versions, {"suspect_path": str(path)}, "failed", error=_text(fut.exception()))
-                    counts["failed"] += 1
-                    continue
-                info = {**fut.result(), "path": str(path)}          # recorded as the folder listed it
-                prev = previous.get(info["sha256"])
-                if _already(prev, versions, ref["keys_held"]):   # the same bytes twice in the folder
-                    counts["skipped"] += 1
-                    continue
-                verdict = _quick(info, ref, out, versions)
-                if verdict:
-                    counts[verdict] += 1
-                    continue
-                view = _scope(issued, prev, state, out)
-                info["prev"] = prev
-                info["candidates"] = candidates(info, set(view) | set(ref["unheld"]), sc["top_k"],
-                                                 sc["shape_margin"])
-                info["unheld"] = unheld_copies([r for rows in ref["unheld"].values() for r in rows],
-                                               set(info["candidates"]), info["sha256"])
-                info["lost"] = [r for rows in ref["lost"].values() for r in rows]
-                checked = [a for a in info["candidates"] if a in view]
-                info["planned"] = planned_recipients([view[a] for a in checked], materials)
-                info["checks"], info["errors"] = [], []
-                # candidates are checked best-ranked first and the search
-                # stops at the first match: the threshold counts every
-                # recipient of every candidate planned, so stopping early
-                # adds no chance to accuse
-                info["queue"] = [(view[a], [str(paths[a])] if a in paths else []) for a in checked]
-                if not _submit_next(client, info, materials, store, detect_params, waiting, pending):
-                    counts[_finish(out, versions, info, detect_params.epsilon, store, ref["keys_held"])] += 1
+    # absolute paths: a worker of an existing cluster has its own working directory
+    index_path = index_path and os.path.abspath(index_path)
+    triages = {client.submit(triage, os.path.abspath(p), descriptors, index_path, pure=False): p
+               for p in readable if p not in done}
+    pending = as_completed(list(triages))
+    waiting = {}
+    for fut in pending:
+        if fut in triages:
+            path = triages.pop(fut)
+            if fut.status != "finished":
+                _record(out, versions, {"suspect_path": str(path)}, "failed", error=_text(fut.exception()))
+                counts["failed"] += 1
+                continue
+            info = {**fut.result(), "path": str(path)}          # recorded as the folder listed it
+            prev = previous.get(info["sha256"])
+            if _already(prev, versions, ref["keys_held"]):   # the same bytes twice in the folder
+                counts["skipped"] += 1
+                continue
+            verdict = _quick(info, ref, out, versions)
+            if verdict:
+                counts[verdict] += 1
+                continue
+            view = _scope(issued, prev, state, out)
+            info["prev"] = prev
+            info["candidates"] = candidates(info, set(view) | set(ref["unheld"]), sc["top_k"],
+                                             sc["shape_margin"])
+            info["unheld"] = unheld_copies([r for rows in ref["unheld"].values() for r in rows],
+                                           set(info["candidates"]), info["sha256"])
+            info["lost"] = [r for rows in ref["lost"].values() for r in rows]
+            checked = [a for a in info["candidates"] if a in view]
+            info["planned"] = planned_recipients([view[a] for a in checked], materials)
+            info["checks"], info["errors"] = [], []
+            # candidates are checked best-ranked first and the search
+            # stops at the first match: the threshold counts every
+            # recipient of every candidate planned, so stopping early
+            # adds no chance to accuse
+            info["queue"] = [(view[a], [str(paths[a])] if a in paths else []) for a in checked]
+            if not _submit_next(client, info, materials, store, detect_params, waiting, pending):
+                counts[_finish(out, versions, info, detect_params.epsilon, store, ref["keys_held"])] += 1
+        else:
+            info = waiting.pop(fut)
+            if fut.status == "finished":
+                info["checks"].append(fut.result())
             else:
-                info = waiting.pop(fut)
-                if fut.status == "finished":
-                    info["checks"].append(fut.result())
-                else:
-                    info["errors"].append(_text(fut.exception()))
-                matched = decide(info["checks"], detect_params.epsilon, _prior(info), info["planned"])["accused"]
-                if matched or not _submit_next(client, info, materials, store, detect_params, waiting, pending):
-                    verdict = _finish(out, versions, info, detect_params.epsilon, store, ref["keys_held"])
-                    counts[verdict] += 1
-                    print(f"[pointmark] scan: {plain_text(info['path'])}: {verdict}", file=sys.stderr, flush=True)
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
-    summary = write_summary(read_scan(out), out / "report.md", detect_params.epsilon, notices)
-    print(f"scanned {len(suspects)} suspects in {time.perf_counter() - t0:.0f}s: {counts['match']} match, "
-          f"{counts['inconclusive']} inconclusive, {counts['no match']} no match, {counts['failed']} failed, "
-          f"{counts['skipped']} already scanned; results in {out}, evidence report {summary}")
-    if counts["failed"]:
-        return 3
-    return 1 if counts["match"] else 0
+                info["errors"].append(_text(fut.exception()))
+            matched = decide(info["checks"], detect_params.epsilon, _prior(info), info["planned"])["accused"]
+            if matched or not _submit_next(client, info, materials, store, detect_params, waiting, pending):
+                verdict = _finish(out, versions, info, detect_params.epsilon, store, ref["keys_held"])
+                counts[verdict] += 1
+                print(f"[pointmark] scan: {plain_text(info['path'])}: {verdict}", file=sys.stderr, flush=True)
+    return {**counts, "seconds": time.perf_counter() - t0}, notices
 
 
 def _suspects(source, out):

@@ -68,7 +68,7 @@ def _rows(job_or_folder):
     return Ledger(folder).rows(status=None)
 
 
-def test_dask_outputs_are_byte_identical_to_a_serial_loop(tmp_path):
+def test_dask_outputs_are_byte_identical_to_a_serial_loop(tmp_path, own_cluster):
     src = make_catalogue(tmp_path / "assets")
     _, c1 = _run(write_config(tmp_path, src, out="dask"))
     _, c2 = _run(write_config(tmp_path, src, out="serial"), serial=True)
