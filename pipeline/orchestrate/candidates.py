@@ -28,15 +28,22 @@ __all__ = ["triage", "candidates", "build_index", "load_index", "planned_recipie
 _INDEXES: "OrderedDict[str, object]" = OrderedDict()    # sha256 of an index file -> its FeatureIndex
 
 
-def load_index(path):
+def load_index(path, sha256=None):
     """The :class:`~pipeline.features.FeatureIndex` in ``path``, kept per process by its bytes' sha256.
 
     A long-lived worker scans night after night: an index rebuilt at the same path is read again.
+    Given the ``sha256`` a scan recorded once, a process that holds that index reads nothing; one
+    that does not reads the file and refuses bytes with another hash.
     """
     from ..features import FeatureIndex
 
+    if sha256 in _INDEXES:
+        _INDEXES.move_to_end(sha256)
+        return _INDEXES[sha256]
     data = read_file(path)
     key = hashlib.sha256(data).hexdigest()
+    if sha256 is not None and key != sha256:
+        raise ValueError(f"{path}: the candidate index changed since the scan began (sha256 differs)")
     if key in _INDEXES:
         _INDEXES.move_to_end(key)
     else:
@@ -49,7 +56,7 @@ def load_index(path):
 MIN_POINTS = 16     # under this a suspect's shape and marks cannot be measured: failed, never ranked
 
 
-def triage(suspect_path, descriptors, index_path):
+def triage(suspect_path, descriptors, index_path, index_sha256=None):
     """Read a suspect, hash it, rank every catalogue asset two ways.
 
     ``ranking``: by shape distribution (D2), the suspect's views (it whole,
@@ -65,7 +72,7 @@ def triage(suspect_path, descriptors, index_path):
     names = list(descriptors)
     shaped, index_ranking = {}, []
     if index_path:
-        index = load_index(index_path)
+        index = load_index(index_path, index_sha256)
         shaped = dict(zip(index.keys, index.shape_distances(points)))
         index_ranking = [k for k, _ in index.rank(points, top_k=len(names))]
     # assets the index lacks (unreadable when it was built) keep the catalogue's whole-asset D2

@@ -338,8 +338,8 @@ def run_evaluation(cfg, secret):
                                 chain, method, seed, material, pure=False)
             futures[fut] = exp
         for exp, model, params, chain, case, seed, n_recipients in fp_trials:
-            fut = client.submit(fingerprint_trial, os.path.abspath(model), prep[_prep_key(model, params)], params, detect_params,
-                                chain, case, seed, material, n_recipients, pure=False)
+            fut = client.submit(fingerprint_trial, os.path.abspath(model), prep[_prep_key(model, params)], params,
+                                detect_params, chain, case, seed, material, n_recipients, pure=False)
             futures[fut] = exp
         fp_futures = []
         if ev["false_positive_keys"]:
@@ -347,9 +347,9 @@ def run_evaluation(cfg, secret):
             for _, model, params, *_ in trials:
                 if model not in seen and "/meshes/" not in model:
                     seen.add(model)
-                    fp_futures.append(client.submit(false_positives, os.path.abspath(model), prep[_prep_key(model, params)],
-                                                    params, detect_params, material, ev["false_positive_keys"],
-                                                    pure=False))
+                    fp_futures.append(client.submit(false_positives, os.path.abspath(model),
+                                                    prep[_prep_key(model, params)], params, detect_params,
+                                                    material, ev["false_positive_keys"], pure=False))
         rows, fingerprint_rows, errors, done = [], [], [], 0
         for fut in as_completed(list(futures)):
             exp = futures.pop(fut)          # released: a lost worker does not recompute collected trials

@@ -277,9 +277,10 @@ def _scan(client, cfg, ref, out, versions, suspects, others, force):
     # work (hashing is cheap; ranking a suspect against the catalogue is not)
     done = {p for p in readable if previous and _already(previous.get(_sha_or_none(p)), versions, ref["keys_held"])}
     counts["skipped"] = len(done)
-    # absolute paths: a worker of an existing cluster has its own working directory
-    index_path = index_path and os.path.abspath(index_path)
-    triages = {client.submit(triage, os.path.abspath(p), descriptors, index_path, pure=False): p
+    # absolute paths: a worker of an existing cluster has its own working directory; the index's
+    # hash, taken once here, spares each triage reading and hashing the index again
+    index = (os.path.abspath(index_path), sha256_file(index_path)) if index_path else (None, None)
+    triages = {client.submit(triage, os.path.abspath(p), descriptors, *index, pure=False): p
                for p in readable if p not in done}
     pending = as_completed(list(triages))
     waiting = {}

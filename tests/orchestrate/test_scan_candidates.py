@@ -24,3 +24,28 @@ def test_only_assets_in_view_are_candidates_and_the_margin_counts_from_the_neare
     info = _info(["gone", "a", "b", "c", "d"], [0.0, 0.10, 0.12, 0.14, 0.15], ["gone", "b"])
     assert _candidates(info, {"a", "b", "c", "d"}, 2, shape_margin=1.6) == ["a", "b", "c", "d"]
     assert "gone" not in _candidates(info, {"a", "b"}, 2, 1.6)
+
+
+def test_the_index_is_kept_by_its_bytes_hash_and_a_changed_file_is_never_served_stale(tmp_path):
+    import numpy as np
+    import pytest
+
+    from pipeline.features import FeatureIndex
+    from pipeline.io.pointcloud import sha256_file
+    from pipeline.orchestrate.candidates import load_index
+
+    def index(keys):
+        feats = np.eye(33, dtype=np.float32)[: len(keys)]
+        return FeatureIndex(list(keys), feats, np.arange(len(keys), dtype=np.int32), ["h"] * len(keys),
+                            np.zeros(len(keys)))
+
+    path = tmp_path / "index.npz"
+    index(["a", "b"]).save(path)
+    sha = sha256_file(path)
+    assert load_index(path, sha).keys == ["a", "b"]
+    path.unlink()                                     # held by its hash: no read at all
+    assert load_index(path, sha).keys == ["a", "b"]
+    index(["a", "b", "c"]).save(path)                 # rebuilt at the same path
+    assert load_index(path).keys == ["a", "b", "c"]
+    with pytest.raises(ValueError, match="changed since the scan began"):
+        load_index(path, "0" * 64)
