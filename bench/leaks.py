@@ -337,7 +337,7 @@ def poses_bench(names=POSE_LEAKS):
     again from its seed as :func:`_redraw` draws it, without the shuffle, so
     the kept points of the issued copy are known; the true pose is their
     Procrustes fit.  Registered by detection's own registration of the
-    checked-out tree (``watermark._register``, with the original's normals).
+    checked-out tree (``watermark.register``, with the original's normals).
     """
     from scipy.spatial import cKDTree
 
@@ -359,7 +359,7 @@ def poses_bench(names=POSE_LEAKS):
         true = registration.umeyama(drawn, kept)
         spacing = float(np.median(resampling.nearest_spacing(original)))
         t0 = time.perf_counter()
-        found = watermark._register(drawn, original, spacing, config.DetectParams(registration="robust"),
+        found = watermark.register(drawn, original, spacing, config.DetectParams(registration="robust"),
                                     cKDTree(original),
                                     resampling.estimate_normals(original))
         off = np.linalg.norm(registration.apply(found, drawn) - registration.apply(true, drawn), axis=1) / spacing

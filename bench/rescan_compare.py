@@ -4,8 +4,8 @@
 benchmark into ``bench/results/leaks`` (see ``bench/leaks.py``) and picks the
 subset: every attack's leaks in turn up to ``N_LEAKS`` and every kind of negative
 in turn up to ``N_NEGATIVES``, copied into ``leaks/compare/suspects``.
-``python bench/rescan_compare.py scan NAME`` scans the subset with the tree it
-runs from into ``leaks/compare/NAME``.  ``python bench/rescan_compare.py diff A B``
+``python bench/rescan_compare.py scan NAME [FOLDER]`` scans the subset (or another
+folder of ``leaks/compare``) with the tree it runs from into ``leaks/compare/NAME``.  ``python bench/rescan_compare.py diff A B``
 prints every suspect whose verdict, asset or recipient differs, and the counts.
 """
 
@@ -50,13 +50,13 @@ def issue():
     print(f"issued in {t_issue:.0f} s; {len(chosen)} suspects chosen into {folder}")
 
 
-def scan(name):
+def scan(name, subset="suspects"):
     import leaks
     from pipeline.orchestrate.scan import run_scan
 
     cfg = leaks._config(WORK, WORK / "manifests", WORK / "marked", "bench")
     cfg["dask"]["n_workers"] = int(__import__("os").environ.get("RESCAN_WORKERS", "1"))
-    cfg["scan"]["suspects"], cfg["scan"]["out"] = str(WORK / "compare" / "suspects"), str(WORK / "compare" / name)
+    cfg["scan"]["suspects"], cfg["scan"]["out"] = str(WORK / "compare" / subset), str(WORK / "compare" / name)
     t0 = time.perf_counter()
     status = run_scan(cfg, leaks.SECRET)
     print(f"scanned into {cfg['scan']['out']}: exit status {status}, {time.perf_counter() - t0:.0f} s")

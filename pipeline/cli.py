@@ -301,7 +301,8 @@ def cmd_detect_ledger(args):
     secret = _secret(args, cfg)
     result = detect_from_ledger(args.suspect, args.ledger, secret, config_mod.detect_params(cfg),
                                 asset=args.asset, store=args.bases,
-                                top_k=args.top_k or cfg["scan"]["top_k"], shape_margin=cfg["scan"]["shape_margin"])
+                                top_k=args.top_k or cfg["scan"]["top_k"], shape_margin=cfg["scan"]["shape_margin"],
+                                gates=config_mod.cascade_gates(cfg))
     lines = [f"{args.suspect}: {result['verdict'].upper()} ({result['n_candidates_checked']} of "
              f"{len(result['candidates'])} candidate asset(s) checked, up to the first match; threshold "
              f"{result['threshold']:.2f} for {result['n_checked']} recipients)"]

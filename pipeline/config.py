@@ -266,6 +266,20 @@ SCAN = _section("Leak-detection scans (pointmark scan).", {
     "shape_margin": _p("number", 1.6, "Assets whose shape-distribution distance is within this factor of "
                        "the nearest are also checked (near-identical assets), up to twice top_k from that "
                        "ranking.", minimum=1.0, maximum=1000),
+    "deep_votes": _p(("number", "null"), None,
+                     "The scan's cascade: a candidate that the quick registration steps (principal frames, "
+                     "ICP, the suspect's separate objects) leave undecided goes on to the deep ones (global "
+                     "RANSAC, the rotation search: 10 to 100 times the cost) only when its share of the "
+                     "suspect's descriptor votes, less its background share, reaches this; the others are "
+                     "not scored (their recipients still count in the threshold).  null: every candidate "
+                     "goes deep.  Calibrated on the leak benchmark (docs/evaluation.md).",
+                     minimum=-1, maximum=1),
+    "quick_shape": _p(("number", "null"), None,
+                      "The scan's cascade: a candidate under deep_votes is registered by the quick steps "
+                      "only when its shape-distribution distance (the nearest of the suspect's views to the "
+                      "asset's) is at most this; the others are not registered nor scored (their recipients "
+                      "still count in the threshold).  null: every candidate gets the quick steps.",
+                      minimum=0, maximum=1000),
     "max_bit_errors": _p("integer", 3, "A decoded payload within this many bits of an issued one "
                          "identifies its recipient.", minimum=0,
                          maximum=256),
@@ -750,6 +764,11 @@ def marking_rule(cfg, units=None):
 def detect_params(cfg):
     """DetectParams from a validated config."""
     return DetectParams(**cfg["detection"])
+
+
+def cascade_gates(cfg):
+    """(deep_votes, quick_shape) of a validated config: the scan's cascade, for scan and detect --ledger."""
+    return cfg["scan"]["deep_votes"], cfg["scan"]["quick_shape"]
 
 
 def dataclass_keys():

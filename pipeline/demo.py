@@ -184,7 +184,8 @@ def run_demo(folder, config_path):
     write_array(leak.parent, leak.stem, attacks.apply_chain(points, [("random_similarity", None), ("shuffle", None)], 7),
                 "ply", keep_existing=False)
     result = detect_from_ledger(leak, job.manifests, secret, config_mod.detect_params(cfg),
-                                top_k=cfg["scan"]["top_k"], shape_margin=cfg["scan"]["shape_margin"])
+                                top_k=cfg["scan"]["top_k"], shape_margin=cfg["scan"]["shape_margin"],
+                                gates=config_mod.cascade_gates(cfg))
     named = ", ".join(f"{a['recipient']} (score {a['score']:.1f}, p = {a['p_value']:.2g})" for a in result["accused"])
     print(f"detect {leak} (rotated, rescaled, shuffled) --ledger {job.manifests}: {result['verdict']}: "
           f"{named or 'nobody'}; issued to {pick['recipient']}")

@@ -23,7 +23,7 @@ from .kernels import distortion as surface_measures
 __all__ = [
     "Frame", "ClusterSpec", "frame_of", "plan_clusters",
     "cluster_basis", "cluster_normals", "modulate_cluster", "embed", "embed_with_bases", "detect",
-    "detect_with_bases", "estimate_differences", "decode", "distortion", "WatermarkError",
+    "detect_with_bases", "estimate_differences", "register", "Undecided", "decode", "distortion", "WatermarkError",
     "Reference", "compute_reference", "embed_reference", "detect_reference", "fingerprint_length",
     "fingerprint_displacement", "cluster_amplitude",
     "capped", "mark_reach", "cluster_fingerprint", "check_count", "check_digest",
@@ -602,18 +602,20 @@ REGISTERED = (0.05, 0.1)   # least fitness (share of the suspect on the original
 
 
 def estimate_differences(suspect, reference, specs, bases, detect_params, params, *, normals=None,
-                         grams=None, spacing=None):
+                         grams=None, spacing=None, deep=True, times=None):
     """Register the suspect and estimate every cluster's r-hat - r (independent of the key).
 
     ``params`` are the embedding's (:class:`WatermarkParams`): its
     displacement model and the reach of the mark (:func:`mark_reach`).
     ``normals`` (n, 3), ``grams`` (per cluster) and ``spacing`` (n,) of the
     reference may come from the basis store (see :class:`Reference`); they are
-    computed here when not given.
+    computed here when not given.  ``deep`` and ``times`` are :func:`register`'s:
+    with ``deep=False`` a suspect that only the deep registration steps could
+    place raises :class:`Undecided` (``times`` then holds the quick steps' seconds).
 
     Returns
     -------
-    dict with ``deltas`` (list of (K, 3) float), ``support`` and ``registration``
+    dict with ``seconds_quick`` and ``seconds_deep`` (the registration's two parts), ``deltas`` (list of (K, 3) float), ``support`` and ``registration``
         (method, scale, fitness and coverage within 3 spacings, residual,
         rotation, translation, and ``failed`` when fitness or coverage is
         under :data:`REGISTERED`)
@@ -623,7 +625,13 @@ def estimate_differences(suspect, reference, specs, bases, detect_params, params
     if normals is None and detect_params.correspondence != "paper":
         normals = resampling.estimate_normals(reference)      # once, for the registration and the fit
     tree = cKDTree(reference)
-    transform = _register(suspect, reference, float(np.median(spacing)), detect_params, tree, normals)
+    times = {} if times is None else times
+    try:
+        transform = register(suspect, reference, float(np.median(spacing)), detect_params, tree, normals,
+                             deep=deep, times=times)
+    except Undecided:
+        times["quick"] = time.perf_counter() - t0      # the reference's spacing, normals and tree too
+        raise
     aligned = registration.apply(transform, suspect)
     fitness, coverage, _ = registration.overlap(aligned, tree, _coverage_sample(reference),
                                                 3.0 * float(np.median(spacing)))
@@ -632,6 +640,8 @@ def estimate_differences(suspect, reference, specs, bases, detect_params, params
                                                normals, grams, spacing)
     return {
         "seconds_registration": t1 - t0,
+        "seconds_quick": t1 - t0 - times["deep"],
+        "seconds_deep": times["deep"],
         "seconds_estimate": time.perf_counter() - t1,
         "deltas": deltas,
         "support": support,
@@ -692,8 +702,40 @@ def _coverage_sample(reference):
     return reference[:: max(1, len(reference) // 4000)]
 
 
-def _register(suspect, reference, spacing, detect_params, tree, normals=None):
-    """Suspect-to-reference similarity by ``detect_params.registration``, with its effort settings."""
+class Undecided(Exception):
+    """A quick registration (``deep=False``) that only the expensive steps could settle."""
+
+
+def register(suspect, reference, spacing, detect_params, tree, normals=None, *, deep=True, times=None):
+    """Suspect-to-reference similarity by ``detect_params.registration``, with its effort settings.
+
+    The robust registration is a cascade.  Its quick steps (principal frames
+    and ICP; the suspect's separate objects registered whole) settle whole
+    copies and scenes that hold the original whole.  Its deep steps (the
+    feature-based global RANSAC, the exhaustive rotation search) are for
+    parts, crops and junk, and cost 10 to 100 times more.
+
+    Parameters
+    ----------
+    suspect : (n, 3) float
+    reference : (m, 3) float
+    spacing : float
+        Median nearest-neighbour distance of the reference.
+    detect_params : DetectParams
+    tree : cKDTree of ``reference``
+    normals : (m, 3) float, optional
+    deep : bool
+        False: raise :class:`Undecided` where the deep steps would run.
+    times : dict, optional
+        Filled with ``quick`` and ``deep``: seconds of each part.
+
+    Returns
+    -------
+    registration.Similarity
+    """
+    times = {} if times is None else times
+    times.update(quick=0.0, deep=0.0)
+    t0 = time.perf_counter()
     method = detect_params.registration
     if method == "none":
         return registration.Similarity(np.eye(3), 1.0, np.zeros(3))
@@ -702,8 +744,10 @@ def _register(suspect, reference, spacing, detect_params, tree, normals=None):
     if method == "global":
         from . import features   # open3d: imported only when used
 
-        return features.register_global(suspect, reference, spacing=spacing,
-                                        iterations=detect_params.ransac_iterations).transform
+        found = features.register_global(suspect, reference, spacing=spacing,
+                                         iterations=detect_params.ransac_iterations).transform
+        times["deep"] = time.perf_counter() - t0
+        return found
     robust = registration.register_robust(suspect, reference, spacing=spacing)
     # a whole copy overlaps the original from both sides; a part of it, the
     # asset among clutter or junk, or a fit collapsed to a tiny scale (every
@@ -717,22 +761,33 @@ def _register(suspect, reference, spacing, detect_params, tree, normals=None):
         # its ICP trims at a quantile of the distances, which junk points and
         # resampled borders widen, and they then pull the scale (1.7-2.4 %
         # short at 50 % outliers on sparse scans): polish with fixed cuts
-        return registration.refine_part(suspect, tree, reference, robust, spacing=spacing,
-                                        widths=POLISH_WIDTHS, iterations=POLISH_ITERATIONS)
+        found = registration.refine_part(suspect, tree, reference, robust, spacing=spacing,
+                                         widths=POLISH_WIDTHS, iterations=POLISH_ITERATIONS)
+        times["quick"] = time.perf_counter() - t0
+        return found
     from . import features   # open3d: imported only when needed
 
     # the same quantile bias: one fixed cut before the other registrations compete
     robust = registration.refine_part(suspect, tree, reference, robust, spacing=spacing,
                                       widths=(3.0,), iterations=features.FINAL_ITERATIONS)
     placed = _register_parts(suspect, reference, spacing, tree)
-    if placed is not None:   # the original, whole, on one of the suspect's objects
-        tried = [robust, placed]
-    else:
-        tried = [robust, features.register_global(suspect, reference, spacing=spacing,
-                                                  iterations=detect_params.ransac_iterations).transform]
+    tried = [robust] if placed is None else [robust, placed]
     ranked = [features.overlap_of(t, suspect, reference, spacing) for t in tried]
     best = tried[features.best_overlap(ranked)]
-    if features.needs_search(best, suspect, reference, spacing):
+    search = placed is not None and features.needs_search(best, suspect, reference, spacing)
+    times["quick"] = time.perf_counter() - t0
+    if placed is not None and not search:     # the original, whole, on one of the suspect's objects
+        return features.polish(suspect, reference, best, spacing=spacing, normals=normals)
+    if not deep:
+        raise Undecided("the quick registration steps leave it undecided")
+    t1 = time.perf_counter()
+    if placed is None:
+        tried.append(features.register_global(suspect, reference, spacing=spacing,
+                                               iterations=detect_params.ransac_iterations).transform)
+        ranked.append(features.overlap_of(tried[-1], suspect, reference, spacing))
+        best = tried[features.best_overlap(ranked)]
+        search = features.needs_search(best, suspect, reference, spacing)
+    if search:
         # a part laid loosely on a smooth shape, where features mislead: search every rotation
         searched = features.register_search(suspect, reference, spacing=spacing, normals=normals,
                                             rotations=detect_params.search_rotations,
@@ -742,9 +797,12 @@ def _register(suspect, reference, spacing, detect_params, tree, normals=None):
             ranked.append(features.overlap_of(searched, suspect, reference, spacing))
             best = tried[features.best_overlap(ranked)]
             if best is searched:
+                times["deep"] = time.perf_counter() - t1
                 return searched          # register_search ends with the polish already
     # point-to-point ICP slides slowly along smooth surfaces: finish on the tangent planes
-    return features.polish(suspect, reference, best, spacing=spacing, normals=normals)
+    found = features.polish(suspect, reference, best, spacing=spacing, normals=normals)
+    times["deep"] = time.perf_counter() - t1
+    return found
 
 
 POLISH_WIDTHS = (3.0, 1.5)   # fixed ICP cuts (spacings) polishing a whole copy's registration

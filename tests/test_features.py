@@ -235,7 +235,7 @@ def test_detection_registers_a_crop_of_a_smooth_shape(kind, chain):
     # FPFH features are all alike on a smooth surface; the rotation search does not need them
     from scipy.spatial import cKDTree
 
-    from pipeline.watermark import _register
+    from pipeline.watermark import register
 
     shape = demo.procedural_shape(kind, 6000, seed=8) * 20
     spacing = float(np.median(nearest_spacing(shape)))
@@ -245,12 +245,33 @@ def test_detection_registers_a_crop_of_a_smooth_shape(kind, chain):
     rot, scale = attacks.random_rotation(rng), 3.0
     placed = attacks.similarity(part, rot, scale, [4.0, -1.0, 2.0])
     suspect = attacks.apply_chain(placed, steps[2:], rng)
-    found = _register(suspect, shape, spacing, EFFORT, cKDTree(shape))
+    found = register(suspect, shape, spacing, EFFORT, cKDTree(shape))
     assert _aligned_error(found, placed, part) < 0.1 * spacing      # the pose, not the noise
     assert not features.needs_search(found, suspect, shape, spacing)
     # a pose a few spacings off along the surface fits loosely: searched again
     off = registration.Similarity(found.rotation, found.scale, found.translation + 4.0 * spacing)
     assert features.needs_search(off, suspect, shape, spacing)
+
+
+def test_the_quick_steps_settle_a_whole_copy_and_leave_a_crop_to_the_deep_ones():
+    from scipy.spatial import cKDTree
+
+    from pipeline.watermark import Undecided, register
+
+    shape = demo.procedural_shape("blob", 6000, seed=8) * 20
+    spacing = float(np.median(nearest_spacing(shape)))
+    rng = np.random.default_rng(5)
+    rot = attacks.random_rotation(rng)
+    whole = attacks.similarity(shape, rot, 3.0, [4.0, -1.0, 2.0])
+    times = {}
+    found = register(whole[rng.permutation(len(whole))], shape, spacing, EFFORT, cKDTree(shape), deep=False,
+                     times=times)
+    assert _aligned_error(found, whole, shape) < 0.1 * spacing
+    assert times["deep"] == 0.0 and times["quick"] > 0.0
+    part = attacks.crop(shape, 0.3, rng)
+    with pytest.raises(Undecided):
+        register(attacks.similarity(part, rot, 3.0, [4.0, -1.0, 2.0]), shape, spacing, EFFORT, cKDTree(shape),
+                 deep=False)
 
 
 def test_the_rotation_search_declines_a_suspect_without_spacing():

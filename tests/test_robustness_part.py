@@ -103,13 +103,13 @@ def test_junk_near_a_small_scan_does_not_shrink_its_registration(shared_data, na
     from scipy.spatial import cKDTree
 
     from pipeline.kernels import resampling
-    from pipeline.watermark import _register
+    from pipeline.watermark import register
 
     points = read_points(shared_data / "models" / f"{name}.ply").points
     points = points - points.mean(axis=0)
     spacing = float(np.median(resampling.nearest_spacing(points)))
     for seed in range(2):
         suspect = attacks.apply_chain(points, [("outliers", 0.5), ("shuffle", None)], np.random.default_rng(seed))
-        found = _register(suspect, points, spacing, DetectParams(registration="robust"), cKDTree(points))
+        found = register(suspect, points, spacing, DetectParams(registration="robust"), cKDTree(points))
         assert abs(found.scale - 1.0) < 2e-3, (seed, found.scale)
         assert found.fitness > 0.6

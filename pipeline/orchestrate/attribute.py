@@ -28,7 +28,8 @@ from ..io.ledger import mac_ok
 from ..io.pointcloud import InputError, read_points, sha256_file
 from ..io.secrets import SecretError
 from ..kernels import fingerprint, keys
-from ..watermark import estimate_differences, fingerprint_length, fingerprint_observation, params_from_record
+from ..watermark import (Undecided, estimate_differences, fingerprint_length, fingerprint_observation,
+                         params_from_record)
 from .reference import load_reference
 from .tasks import copy_label
 
@@ -57,7 +58,7 @@ def usable_rows(rows, secret_fingerprints):
             and r["key_fingerprint"] in secret_fingerprints]
 
 
-def check_asset(suspect_path, rows, materials, store, detect_params, *, places=()):
+def check_asset(suspect_path, rows, materials, store, detect_params, *, places=(), deep=True):
     """Score every issued recipient of one asset against one suspect.
 
     Parameters
@@ -76,14 +77,20 @@ def check_asset(suspect_path, rows, materials, store, detect_params, *, places=(
     places : sequence of str or Path
         Files to try first for an original (the catalogue's), before the
         source paths the ledger recorded.
+    deep : bool
+        Whether the registration may run its deep steps
+        (:func:`pipeline.watermark.register`); False leaves a reference
+        that only they could place unscored, counted in ``stopped``.
 
     Returns
     -------
     dict
         ``groups`` (one per reference and key id: asset, key id, recipients
         scored, their best scores, presence p-value, registration, original
-        path), ``unchecked`` (lines from :func:`original_files`: copies whose
-        original no file holds) and timings.
+        path), ``stopped`` (references left unscored after the quick
+        registration steps), ``unchecked`` (lines from :func:`original_files`:
+        copies whose original no file holds) and timings (``registration``,
+        of it ``quick`` and ``deep``, ``estimate``, ``scoring``).
 
     Raises
     ------
@@ -99,16 +106,26 @@ def check_asset(suspect_path, rows, materials, store, detect_params, *, places=(
     for r in rows:
         if r["source_sha256"] in files:         # the rest are reported in ``unchecked``, never "no match"
             by_ref[r["reference_key"]].append(r)
-    groups, seconds = [], {"registration": 0.0, "estimate": 0.0, "scoring": 0.0}
+    groups, stopped = [], 0
+    seconds = {"registration": 0.0, "quick": 0.0, "deep": 0.0, "estimate": 0.0, "scoring": 0.0}
     for ref_key, ref_rows in sorted(by_ref.items()):
         params = params_from_row(ref_rows[0])
         sha = ref_rows[0]["source_sha256"]       # (a reference is one original's bytes under one parameter set)
         original = originals[sha]
         ref = load_reference(original, params, store, ref_key, reference_record(ref_rows[0])["digests"],
                              detection=True)
-        est = estimate_differences(suspect - ref.centre, original - ref.centre, ref.specs, ref.bases,
-                                   detect_params, params, **ref.detection_aids())
+        times = {}
+        try:
+            est = estimate_differences(suspect - ref.centre, original - ref.centre, ref.specs, ref.bases,
+                                       detect_params, params, deep=deep, times=times, **ref.detection_aids())
+        except Undecided:
+            seconds["registration"] += times["quick"]
+            seconds["quick"] += times["quick"]
+            stopped += 1
+            continue
         seconds["registration"] += est["seconds_registration"]
+        seconds["quick"] += est["seconds_quick"]
+        seconds["deep"] += est["seconds_deep"]
         seconds["estimate"] += est["seconds_estimate"]
         t0 = time.perf_counter()
         y = fingerprint_observation(est, ref.specs, params)
@@ -118,7 +135,8 @@ def check_asset(suspect_path, rows, materials, store, detect_params, *, places=(
                 groups.append({**_score_group(y, ref, params, rows_g, materials[key_id], est["registration"]),
                                "original_path": str(files[sha])})
         seconds["scoring"] += time.perf_counter() - t0
-    return {"asset_key": rows[0]["asset_key"], "groups": groups, "seconds": seconds, "unchecked": unchecked}
+    return {"asset_key": rows[0]["asset_key"], "groups": groups, "stopped": stopped, "seconds": seconds,
+            "unchecked": unchecked}
 
 
 def original_files(rows, places=(), store=None):

@@ -22,7 +22,7 @@ from ..io.basis_store import find_file, read_file, write_file
 from ..io.pointcloud import InputError, read_points, sha256_file
 from ..kernels.descriptor import d2_descriptor, descriptor_distance
 
-__all__ = ["triage", "candidates", "build_index", "load_index", "planned_recipients", "INDEX_FORMAT", "MIN_POINTS"]
+__all__ = ["triage", "candidates", "cascade", "build_index", "load_index", "planned_recipients", "INDEX_FORMAT", "MIN_POINTS"]
 
 
 _INDEXES: "OrderedDict[str, object]" = OrderedDict()    # sha256 of an index file -> its FeatureIndex
@@ -63,18 +63,20 @@ def triage(suspect_path, descriptors, index_path, index_sha256=None):
     without outliers, each separate object) against each asset's (whole,
     cut as a crop cuts it, and without outliers), right for whole copies,
     scenes, outliers and crops; ``index_ranking``: by votes of local descriptors (FPFH) over the
-    catalogue index, right for parts of an asset and assets inside a scene.
+    catalogue index, right for parts of an asset and assets inside a scene;
+    ``index_votes``: each one's share of the suspect's descriptors less its
+    background share (inf for an exact geometry hash).
     """
     t0 = time.perf_counter()
     points = read_points(suspect_path).points
     if len(points) < MIN_POINTS:
         raise InputError(f"{suspect_path}: {len(points)} point(s): too few to hold a watermark (at least {MIN_POINTS})")
     names = list(descriptors)
-    shaped, index_ranking = {}, []
+    shaped, voted = {}, []
     if index_path:
         index = load_index(index_path, index_sha256)
         shaped = dict(zip(index.keys, index.shape_distances(points)))
-        index_ranking = [k for k, _ in index.rank(points, top_k=len(names))]
+        voted = index.rank(points, top_k=len(names))
     # assets the index lacks (unreadable when it was built) keep the catalogue's whole-asset D2
     missing = [k for k in names if k not in shaped]
     if missing:
@@ -85,7 +87,8 @@ def triage(suspect_path, descriptors, index_path, index_sha256=None):
     order = np.argsort(dist, kind="stable")
     return {"path": str(suspect_path), "sha256": sha256_file(suspect_path), "n_points": len(points),
             "ranking": [names[i] for i in order], "distances": [float(dist[i]) for i in order],
-            "index_ranking": index_ranking, "seconds": time.perf_counter() - t0}
+            "index_ranking": [k for k, _ in voted], "index_votes": [v for _, v in voted],
+            "seconds": time.perf_counter() - t0}
 
 
 def candidates(info, view, top_k, shape_margin):
@@ -102,6 +105,48 @@ def candidates(info, view, top_k, shape_margin):
     pick = [a for pair in zip(by_shape, by_votes) for a in pair]
     pick += by_shape[len(by_votes):] + by_votes[len(by_shape):]
     return list(dict.fromkeys(pick))
+
+
+def cascade(info, picked, deep_votes, quick_shape):
+    """How far each candidate's check may go: the scan's cascade, decided from the triage alone.
+
+    The quick registration steps (:func:`pipeline.watermark.register`)
+    settle whole copies and scenes holding the asset whole: suspects whose
+    shape distribution, or one of their objects', is near the asset's.  The
+    deep ones (global RANSAC, the rotation search, 10 to 100 times the cost)
+    place what is left, a part of the asset or the asset in junk, and such a
+    suspect's local descriptors vote for its asset.  So a candidate goes
+    "deep" when its vote share (less its background share) reaches
+    ``deep_votes``; otherwise "quick" when its shape distance is at most
+    ``quick_shape``; otherwise it is not registered at all (None).  A
+    candidate without votes or shape distance (not indexed, no index) goes
+    deep.  Both thresholds are calibrated on the leak benchmark
+    (``bench/cascade.py``); what a stage stops is never scored, and its
+    recipients still count in the threshold.
+
+    Parameters
+    ----------
+    info : dict, from :func:`triage`
+    picked : list of str, asset keys (from :func:`candidates`)
+    deep_votes, quick_shape : float or None
+        ``scan.deep_votes`` and ``scan.quick_shape``; None: no gate there
+        (every candidate may go deep; every candidate is registered).
+
+    Returns
+    -------
+    dict of asset key -> "deep", "quick" or None
+    """
+    votes = dict(zip(info.get("index_ranking", []), info.get("index_votes", [])))
+    shape = dict(zip(info.get("ranking", []), info.get("distances", [])))
+    out = {}
+    for a in picked:
+        if deep_votes is None or votes.get(a, float("inf")) >= deep_votes:
+            out[a] = "deep"
+        elif quick_shape is None or shape.get(a, 0.0) <= quick_shape:
+            out[a] = "quick"
+        else:
+            out[a] = None
+    return out
 
 
 INDEX_FORMAT = "v4"   # v2: inverted-file cells; v3: whole and cut shape views; v4: and the dense view

@@ -21,7 +21,7 @@ from ..io.ledger import Ledger
 from ..io.pointcloud import InputError, read_points, sha256_file
 from ..kernels.descriptor import d2_descriptor
 from .attribute import check_asset, decide, held_rows, original_files, unheld_copies, unheld_summary
-from .candidates import build_index, candidates, load_index, planned_recipients, triage
+from .candidates import build_index, candidates, cascade, load_index, planned_recipients, triage
 
 __all__ = ["detect_from_ledger", "candidate_groups"]
 
@@ -37,7 +37,7 @@ def candidate_groups(rows, asset=None):
     return groups
 
 
-def _rank(suspect_path, groups, top_k, shape_margin, store):
+def _rank(suspect_path, groups, top_k, shape_margin, gates, store):
     """The originals to check, by ``pointmark scan``'s candidate search.
 
     Local-descriptor votes over an index of the ledger's originals (built
@@ -45,11 +45,13 @@ def _rank(suspect_path, groups, top_k, shape_margin, store):
     asset and assets inside a scene; the shape views find whole copies,
     crops and near-identical assets.  Fewer originals than ``top_k`` are
     all returned, ranked, so the first match comes early.  Returns (asset,
-    source sha256) keys.
+    source sha256) keys, and how far each one's check may go
+    (:func:`pipeline.orchestrate.candidates.cascade` at ``gates``, the
+    config's ``deep_votes`` and ``quick_shape``; "deep" for one original).
     """
 
     if len(groups) == 1:
-        return list(groups)
+        return list(groups), dict.fromkeys(groups, "deep")
     keys = {f"{asset}@{sha[:16]}": (asset, sha) for asset, sha in groups}
     found = {g: original_files(groups[g], store=store)[0] for g in keys.values()}
     paths = {k: found[g].get(g[1], groups[g][-1]["source_path"]) for k, g in keys.items()}
@@ -58,7 +60,8 @@ def _rank(suspect_path, groups, top_k, shape_margin, store):
     indexed = set(load_index(index_path).keys) if index_path else set()
     descriptors = {k: None if k in indexed else _whole_d2(paths[k]) for k in keys}   # D2 for what it lacks
     info = triage(suspect_path, descriptors, index_path)
-    return [keys[k] for k in candidates(info, set(keys), top_k, shape_margin)]
+    picked = candidates(info, set(keys), top_k, shape_margin)
+    return [keys[k] for k in picked], {keys[k]: s for k, s in cascade(info, picked, *gates).items()}
 
 
 def _whole_d2(path):
@@ -66,24 +69,27 @@ def _whole_d2(path):
     return d2_descriptor(points - points.mean(axis=0))
 
 
-def _check_in_order(suspect, candidates, groups, materials, store, detect_params):
+def _check_in_order(suspect, candidates, stages, groups, materials, store, detect_params):
     """Check candidates best-ranked first and stop at the first match, as a scan does.
 
-    The threshold counts every recipient of every candidate planned, so
-    stopping early adds no chance to accuse.
+    The threshold counts every recipient of every candidate planned, those
+    the cascade stops (``stages``) included, so neither stopping early nor
+    the cascade adds a chance to accuse.
     """
 
     planned = planned_recipients([groups[c] for c in candidates], materials)
     checks = []
     for c in candidates:
-        checks.append(check_asset(suspect, groups[c], materials, store, detect_params))
+        if stages[c] is None:
+            continue
+        checks.append(check_asset(suspect, groups[c], materials, store, detect_params, deep=stages[c] == "deep"))
         if decide(checks, detect_params.epsilon, planned=planned)["accused"]:
             break
     return {**decide(checks, detect_params.epsilon, planned=planned), "checks": checks}
 
 
 def detect_from_ledger(suspect, ledger_dir, secret, detect_params, *, asset=None, store=None, top_k=None,
-                       shape_margin=None):
+                       shape_margin=None, gates="config"):
     """Attribute one suspect file.
 
     Without ``asset``, the candidates of ``pointmark scan``'s search are
@@ -91,7 +97,9 @@ def detect_from_ledger(suspect, ledger_dir, secret, detect_params, *, asset=None
     best by shape views, interleaved, and near-identical shapes within
     ``shape_margin`` (None: the config's ``scan.top_k`` and ``scan.shape_margin``),
     so parts of an asset and assets inside a scene are found as a scan
-    finds them.  They are checked best-ranked first, up to the first match.
+    finds them.  They are checked best-ranked first, up to the first match,
+    each through the scan's cascade at ``gates`` ((deep_votes, quick_shape);
+    "config": the config's ``scan.deep_votes`` and ``scan.quick_shape``).
 
     Returns
     -------
@@ -105,11 +113,13 @@ def detect_from_ledger(suspect, ledger_dir, secret, detect_params, *, asset=None
     rows, materials = held_rows(ledger, secret, report=report)
     groups = candidate_groups(rows, asset)
     store = Path(store) if store else ledger.folder / "bases"
-    search = config.load_config()["scan"]
+    defaults = config.load_config()
+    search = defaults["scan"]
     top_k = search["top_k"] if top_k is None else top_k
     shape_margin = search["shape_margin"] if shape_margin is None else shape_margin
-    candidates = _rank(suspect, groups, top_k, shape_margin, store)
-    result = _check_in_order(suspect, candidates, groups, materials, store, detect_params)
+    gates = config.cascade_gates(defaults) if gates == "config" else gates
+    candidates, stages = _rank(suspect, groups, top_k, shape_margin, gates, store)
+    result = _check_in_order(suspect, candidates, stages, groups, materials, store, detect_params)
     checks = result.pop("checks")
     unchecked = [line for c in checks for line in c["unchecked"]]
     if unchecked and result["verdict"] != "match":      # never "no match" while copies went unchecked

@@ -77,7 +77,7 @@ from ..io.paths import check_apart, check_disjoint, source_folders
 from ..io.pointcloud import InputError, atomic_write_bytes, read_points, sha256_file
 from ..kernels.descriptor import d2_descriptor
 from .attribute import check_asset, decide, held_rows, original_files, params_from_row, unheld_copies, unheld_summary
-from .candidates import build_index, candidates, load_index, planned_recipients, triage
+from .candidates import build_index, candidates, cascade, load_index, planned_recipients, triage
 from .reference import load_reference
 
 __all__ = ["SCAN_SCHEMA", "run_scan", "read_scan", "render_evidence"]
@@ -110,6 +110,9 @@ SCAN_SCHEMA = pa.schema([
     ("seconds_candidates", pa.float64()),
     ("seconds_registration", pa.float64()),
     ("seconds_detection", pa.float64()),
+    ("seconds_quick_registration", pa.float64()),
+    ("seconds_deep_registration", pa.float64()),
+    ("n_stopped", pa.int64()),
     ("status", pa.string()),
     ("error", pa.string()),
     ("note", pa.string()),
@@ -314,7 +317,10 @@ def _scan(client, cfg, ref, out, versions, suspects, others, force):
             # stops at the first match: the threshold counts every
             # recipient of every candidate planned, so stopping early
             # adds no chance to accuse
-            info["queue"] = [(view[a], [str(paths[a])] if a in paths else []) for a in checked]
+            stage = cascade(info, checked, *config_mod.cascade_gates(cfg))
+            info["stopped"] = sum(stage[a] is None for a in checked)      # not registered at all
+            info["queue"] = [(view[a], [str(paths[a])] if a in paths else [], stage[a] == "deep")
+                             for a in checked if stage[a] is not None]
             if not _submit_next(client, info, materials, store, detect_params, waiting, pending):
                 counts[_finish(out, versions, info, detect_params.epsilon, store, ref["keys_held"])] += 1
         else:
@@ -406,9 +412,10 @@ def _submit_next(client, info, materials, store, detect_params, waiting, pending
     """
     if not info["queue"]:
         return False
-    rows, places = info["queue"].pop(0)
+    rows, places, deep = info["queue"].pop(0)
     fut = client.submit(check_asset, os.path.abspath(info["path"]), rows, materials, os.path.abspath(store),
-                        detect_params, places=[os.path.abspath(p) for p in places], pure=False, priority=1)
+                        detect_params, places=[os.path.abspath(p) for p in places], deep=deep, pure=False,
+                        priority=1)
     waiting[fut] = info
     pending.add(fut)
     return True
@@ -490,6 +497,11 @@ def _finish(out, versions, info, epsilon, store, keys_held):
         except (ValueError, OSError) as exc:          # the accusation stands without its picture
             evidence = None
             notes.append(f"no evidence picture: {_text(exc)}")
+    stopped = info.get("stopped", 0) + sum(c.get("stopped", 0) for c in info["checks"])
+    if stopped and result["verdict"] != "match":
+        notes.append(f"{stopped} candidate original(s) stopped by the cascade: too few of the suspect's "
+                     f"descriptors vote for them to hold a part of one (scan.deep_votes), and no whole copy "
+                     f"was found (scan.quick_shape); their recipients count in the threshold")
     regs = [g["registration"] for c in info["checks"] for g in c["groups"]]
     # the accused's registration, else the best one (most overlap) of any candidate
     reg = top["registration"] if top else max(regs, key=lambda r: min(r.get("fitness", 0), r.get("coverage", 0)),
@@ -507,6 +519,9 @@ def _finish(out, versions, info, epsilon, store, keys_held):
             registration_scale=reg.get("scale"), registration_coverage=reg.get("coverage"),
             registration_status=status,
             seconds_registration=sum(s["registration"] for s in seconds),
+            seconds_quick_registration=sum(s.get("quick", 0.0) for s in seconds),
+            seconds_deep_registration=sum(s.get("deep", 0.0) for s in seconds),
+            n_stopped=stopped,
             seconds_detection=sum(s["estimate"] + s["scoring"] for s in seconds),
             evidence_path=None if evidence is None else str(evidence), keys_held=keys_held,
             n_unchecked=len(unheld) or None, unchecked=_unchecked_text(info) or None,

@@ -1,6 +1,7 @@
 """Which catalogue assets a scan checks for a suspect, and in what order."""
 
 from pipeline.orchestrate.candidates import candidates as _candidates
+from pipeline.orchestrate.candidates import cascade
 
 
 def _info(shape, distances, votes):
@@ -24,6 +25,20 @@ def test_only_assets_in_view_are_candidates_and_the_margin_counts_from_the_neare
     info = _info(["gone", "a", "b", "c", "d"], [0.0, 0.10, 0.12, 0.14, 0.15], ["gone", "b"])
     assert _candidates(info, {"a", "b", "c", "d"}, 2, shape_margin=1.6) == ["a", "b", "c", "d"]
     assert "gone" not in _candidates(info, {"a", "b"}, 2, 1.6)
+
+
+def test_the_cascade_sends_voted_candidates_deep_near_shapes_quick_and_stops_the_rest():
+    info = {"index_ranking": ["x", "a", "b", "c", "d", "e"], "index_votes": [float("inf"), 0.31, 0.02, -0.01, 0, 0],
+            "ranking": ["c", "b", "a", "d", "x", "e"], "distances": [0.01, 0.04, 0.2, 0.3, 0.5, 0.9]}
+    picked = ["a", "b", "c", "d", "e", "x"]
+    assert cascade(info, picked, 0.02, 0.05) == {"a": "deep", "b": "deep", "c": "quick", "d": None, "e": None,
+                                                 "x": "deep"}
+    assert cascade(info, picked, 0.05, 0.25) == {"a": "deep", "b": "quick", "c": "quick", "d": None, "e": None,
+                                                 "x": "deep"}
+    assert set(cascade(info, picked, None, 0.05).values()) == {"deep"}             # no gate on the deep steps
+    assert cascade(info, picked, 0.5, None) == {**dict.fromkeys(picked, "quick"), "x": "deep"}
+    assert cascade(info, ["f"], 0.5, 0.05) == {"f": "deep"}        # not indexed: deep
+    assert cascade({}, ["a"], 0.5, 0.05) == {"a": "deep"}          # no index: deep
 
 
 def test_the_index_is_kept_by_its_bytes_hash_and_a_changed_file_is_never_served_stale(tmp_path):
