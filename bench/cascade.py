@@ -8,11 +8,12 @@ asset; where they leave it undecided, and on every negative, the triage
 (descriptor votes over the catalogue index, the candidates).  One JSON line
 per suspect goes to ``bench/results/leaks/cascade/measure.jsonl`` (resumable).
 
-``python bench/cascade.py summary [DEEP_VOTES]`` prints the leaks whose asset
-the quick steps settle, per attack; for the rest, the vote share of their
-asset (what ``scan.deep_votes`` is calibrated on), and at ``DEEP_VOTES`` the
-leaks the gate would stop (the miss rate it adds) and the candidates an
-innocent suspect still takes deep.
+``python bench/cascade.py summary [DEEP_VOTES SHAPE_GATE]`` prints the leaks
+whose asset the quick steps settle, per attack; for the rest, the vote share of
+their asset (what ``scan.deep_votes`` is calibrated on); the shape distances of
+every leak's asset (``scan.shape_gate``); and at the two gates, the leaks they
+would lose (the miss rate they add) and the candidates an innocent suspect
+still registers, and takes deep.
 """
 
 from __future__ import annotations
@@ -116,8 +117,8 @@ def measure(n_procs="1"):
                   f"quick {sum(s for _, s in row['quick'].values()):.1f} s", flush=True)
 
 
-def summary(votes=None):
-    """The gate's miss rate on the leaks and the deep checks it leaves an innocent, at ``votes``."""
+def summary(votes=None, shape=None):
+    """The gates' miss rate on the leaks and the checks they leave an innocent, at ``votes`` and ``shape``."""
     import numpy as np
 
     rows = [json.loads(line) for line in (OUT / "measure.jsonl").read_text().splitlines()]
@@ -133,6 +134,8 @@ def summary(votes=None):
         print(f"  {attack}: {settled} settled, {left} to the gate")
     gated = sorted((r["votes"].get(r["asset"], float("inf")), r["name"], r["attack"]) for r in undecided)
     print("vote shares of their assets, lowest first:", [(round(v, 4), n, a) for v, n, a in gated[:15]])
+    far = sorted(((r["shape"].get(r["asset"], 0.0), r["name"], r["attack"]) for r in leaks), reverse=True)
+    print("shape distances of the leaks' assets, farthest first:", [(round(d, 4), n, a) for d, n, a in far[:12]])
     not_cand = [r["name"] for r in undecided if r["asset"] not in r["candidates"]]
     print("of them, the asset not a candidate:", not_cand)
     top = sorted(((max((r["votes"].get(a, 0.0) for a in r["candidates"]), default=0.0), r["name"]) for r in negs),
@@ -146,12 +149,24 @@ def summary(votes=None):
         if tri:
             print(f"{group}: triage median {np.median(tri):.1f} s, p95 {np.percentile(tri, 95):.1f} s")
     if votes is not None:
-        votes = float(votes)
-        lost = [(r["name"], r["attack"]) for r in undecided if r["votes"].get(r["asset"], float("inf")) < votes]
-        deep = [sum(r["votes"].get(a, float("inf")) >= votes for a in r["candidates"]) for r in negs]
-        print(f"deep_votes {votes}: leaks the gate stops {len(lost)} of {len(leaks)} {lost}; candidates an innocent "
-              f"may take deep: median {np.median(deep):.0f}, p95 {np.percentile(deep, 95):.0f}, most {max(deep)} "
-              f"(of {np.median([len(r['candidates']) for r in negs]):.0f})")
+        votes, gate = float(votes), float(shape)
+        lost = [(r["name"], r["attack"]) for r in leaks if _stage(r, r["asset"], votes, gate) is None
+                or (r in undecided and _stage(r, r["asset"], votes, gate) != "deep")]
+        stages = [[_stage(r, a, votes, gate) for a in r["candidates"]] for r in negs]
+        quick = [sum(s is not None for s in st) for st in stages]
+        deep = [sum(s == "deep" for s in st) for st in stages]
+        print(f"deep_votes {votes}, shape_gate {gate}: leaks lost {len(lost)} of {len(leaks)} {lost}; per negative, "
+              f"candidates registered median {np.median(quick):.0f} (most {max(quick)}), of them allowed deep "
+              f"median {np.median(deep):.0f} (p95 {np.percentile(deep, 95):.0f}, most {max(deep)}), "
+              f"of {np.median([len(r['candidates']) for r in negs]):.0f} candidates")
+
+
+def _stage(row, asset, votes, gate):
+    from pipeline.orchestrate.candidates import cascade
+
+    info = {"index_ranking": list(row.get("votes", {})), "index_votes": list(row.get("votes", {}).values()),
+            "ranking": list(row.get("shape", {})), "distances": list(row.get("shape", {}).values())}
+    return cascade(info, [asset], votes, gate)[asset]
 
 
 if __name__ == "__main__":

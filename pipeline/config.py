@@ -266,20 +266,23 @@ SCAN = _section("Leak-detection scans (pointmark scan).", {
     "shape_margin": _p("number", 1.6, "Assets whose shape-distribution distance is within this factor of "
                        "the nearest are also checked (near-identical assets), up to twice top_k from that "
                        "ranking.", minimum=1.0, maximum=1000),
+    "follow": _p(("number", "null"), None,
+                 "Keep the scan open for files that appear in scan.suspects while it runs: each is taken "
+                 "once its size and time hold for 2 s, and the scan ends after this many seconds without "
+                 "a new one.  null: the files there when it starts.", minimum=0, maximum=86400),
+    "shape_gate": _p(("number", "null"), None,
+                     "The scan's cascade: a candidate whose shape-distribution distance (the nearest of "
+                     "the suspect's views, whole, without outliers, object by object, to the asset's, whole "
+                     "or cut) exceeds this is not registered nor scored; its recipients still count in the "
+                     "threshold.  null: every candidate is registered.  Calibrated on the leak benchmark "
+                     "(docs/method.md, Leak scans).", minimum=0, maximum=1000),
     "deep_votes": _p(("number", "null"), None,
                      "The scan's cascade: a candidate that the quick registration steps (principal frames, "
                      "ICP, the suspect's separate objects) leave undecided goes on to the deep ones (global "
                      "RANSAC, the rotation search: 10 to 100 times the cost) only when its share of the "
                      "suspect's descriptor votes, less its background share, reaches this; the others are "
-                     "not scored (their recipients still count in the threshold).  null: every candidate "
-                     "goes deep.  Calibrated on the leak benchmark (docs/evaluation.md).",
+                     "not scored (their recipients still count).  null: every candidate may go deep.",
                      minimum=-1, maximum=1),
-    "quick_shape": _p(("number", "null"), None,
-                      "The scan's cascade: a candidate under deep_votes is registered by the quick steps "
-                      "only when its shape-distribution distance (the nearest of the suspect's views to the "
-                      "asset's) is at most this; the others are not registered nor scored (their recipients "
-                      "still count in the threshold).  null: every candidate gets the quick steps.",
-                      minimum=0, maximum=1000),
     "max_bit_errors": _p("integer", 3, "A decoded payload within this many bits of an issued one "
                          "identifies its recipient.", minimum=0,
                          maximum=256),
@@ -767,8 +770,8 @@ def detect_params(cfg):
 
 
 def cascade_gates(cfg):
-    """(deep_votes, quick_shape) of a validated config: the scan's cascade, for scan and detect --ledger."""
-    return cfg["scan"]["deep_votes"], cfg["scan"]["quick_shape"]
+    """(deep_votes, shape_gate) of a validated config: the scan's cascade, for scan and detect --ledger."""
+    return cfg["scan"]["deep_votes"], cfg["scan"]["shape_gate"]
 
 
 def dataclass_keys():

@@ -754,9 +754,11 @@ def register(suspect, reference, spacing, detect_params, tree, normals=None, *, 
     # point "near" the original) does not, and there the principal frames
     # mean little: the scene's separate objects that look like the original
     # are registered whole, and failing that the feature-based global step
-    # competes
+    # competes.  A sparse copy (10 % of the points) covers its original at
+    # its own spacing, not the original's.
+    sampling = float(np.median(resampling.nearest_spacing(suspect))) * robust.scale
     fitness, coverage, _ = registration.overlap(registration.apply(robust, suspect), tree,
-                                                _coverage_sample(reference), 3.0 * spacing)
+                                                _coverage_sample(reference), 3.0 * max(spacing, sampling))
     if min(fitness, coverage) >= 0.8:
         # its ICP trims at a quantile of the distances, which junk points and
         # resampled borders widen, and they then pull the scale (1.7-2.4 %

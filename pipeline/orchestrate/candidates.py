@@ -107,30 +107,29 @@ def candidates(info, view, top_k, shape_margin):
     return list(dict.fromkeys(pick))
 
 
-def cascade(info, picked, deep_votes, quick_shape):
+def cascade(info, picked, deep_votes, shape_gate):
     """How far each candidate's check may go: the scan's cascade, decided from the triage alone.
 
-    The quick registration steps (:func:`pipeline.watermark.register`)
-    settle whole copies and scenes holding the asset whole: suspects whose
-    shape distribution, or one of their objects', is near the asset's.  The
-    deep ones (global RANSAC, the rotation search, 10 to 100 times the cost)
-    place what is left, a part of the asset or the asset in junk, and such a
-    suspect's local descriptors vote for its asset.  So a candidate goes
-    "deep" when its vote share (less its background share) reaches
-    ``deep_votes``; otherwise "quick" when its shape distance is at most
-    ``quick_shape``; otherwise it is not registered at all (None).  A
-    candidate without votes or shape distance (not indexed, no index) goes
-    deep.  Both thresholds are calibrated on the leak benchmark
-    (``bench/cascade.py``); what a stage stops is never scored, and its
-    recipients still count in the threshold.
+    A copy, a crop, the asset in a scene or in junk: each has a view whose
+    shape distribution is near the asset's (:func:`triage`), so a candidate
+    farther than ``shape_gate`` is not registered at all (None).  The quick
+    registration steps (:func:`pipeline.watermark.register`) settle whole
+    copies and scenes holding the asset whole; the deep ones (global RANSAC,
+    the rotation search, 10 to 100 times the cost) place what is left, a
+    part of the asset, and such a suspect's local descriptors vote for its
+    asset: a candidate goes "deep" when its vote share (less its background
+    share) also reaches ``deep_votes``, else "quick".  A candidate without
+    votes or a shape distance (not indexed, no index) goes deep.  Both
+    thresholds are calibrated on the leak benchmark (``bench/cascade.py``);
+    what a stage stops is never scored, and its recipients still count in
+    the threshold.
 
     Parameters
     ----------
     info : dict, from :func:`triage`
     picked : list of str, asset keys (from :func:`candidates`)
-    deep_votes, quick_shape : float or None
-        ``scan.deep_votes`` and ``scan.quick_shape``; None: no gate there
-        (every candidate may go deep; every candidate is registered).
+    deep_votes, shape_gate : float or None
+        ``scan.deep_votes`` and ``scan.shape_gate``; None: no gate there.
 
     Returns
     -------
@@ -140,12 +139,12 @@ def cascade(info, picked, deep_votes, quick_shape):
     shape = dict(zip(info.get("ranking", []), info.get("distances", [])))
     out = {}
     for a in picked:
-        if deep_votes is None or votes.get(a, float("inf")) >= deep_votes:
-            out[a] = "deep"
-        elif quick_shape is None or shape.get(a, 0.0) <= quick_shape:
-            out[a] = "quick"
-        else:
+        if shape_gate is not None and shape.get(a, 0.0) > shape_gate:
             out[a] = None
+        elif deep_votes is None or votes.get(a, float("inf")) >= deep_votes:
+            out[a] = "deep"
+        else:
+            out[a] = "quick"
     return out
 
 

@@ -1,10 +1,11 @@
-"""Progress of a catalogue run: a live bar on a terminal, periodic lines otherwise."""
+"""Progress of a catalogue run or a scan: a live bar on a terminal, periodic lines otherwise."""
 
 from __future__ import annotations
 
 import time
+from collections import Counter
 
-__all__ = ["Progress"]
+__all__ = ["Progress", "Bar", "Lines"]
 
 
 class Progress:
@@ -28,6 +29,15 @@ class Progress:
         self.estimate, self.planned, self.planned_clusters = clusters_per_asset, 0, 0
         self.clusters_done = 0
         self.t0 = self.last = time.monotonic()
+
+    def start_scan(self, n_suspects):
+        """Count suspects and their verdicts (a scan) instead of assets and clusters."""
+        self.start(n_suspects, 0)
+        self.verdicts = Counter()
+
+    def suspect_done(self, verdict):
+        self.verdicts[verdict] += 1
+        self.asset_done()
 
     @property
     def clusters(self):
@@ -57,6 +67,10 @@ class Progress:
     def text(self):
         eta = self.eta()
         eta_text = "?" if eta is None else f"{eta:.0f}s"
+        if hasattr(self, "verdicts"):
+            said = ", ".join(f"{n} {v}" for v, n in sorted(self.verdicts.items()))
+            return (f"suspects {self.assets_done}/{self.assets}{f' ({said})' if said else ''}, "
+                    f"elapsed {time.monotonic() - self.t0:.0f}s, ETA {eta_text}")
         return (f"assets {self.assets_done}/{self.assets}, clusters {self.clusters_done}/{self.clusters}, "
                 f"elapsed {time.monotonic() - self.t0:.0f}s, ETA {eta_text}")
 

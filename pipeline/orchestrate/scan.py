@@ -78,6 +78,7 @@ from ..io.pointcloud import InputError, atomic_write_bytes, read_points, sha256_
 from ..kernels.descriptor import d2_descriptor
 from .attribute import check_asset, decide, held_rows, original_files, params_from_row, unheld_copies, unheld_summary
 from .candidates import build_index, candidates, cascade, load_index, planned_recipients, triage
+from .progress import Bar, Progress
 from .reference import load_reference
 
 __all__ = ["SCAN_SCHEMA", "run_scan", "read_scan", "render_evidence"]
@@ -248,12 +249,17 @@ def run_scan(cfg, secret, *, force=False):
         if cluster is not None:
             cluster.close()
     summary = write_summary(read_scan(out), out / "report.md", detect_params.epsilon, notices)
-    print(f"scanned {len(suspects)} suspects in {counts.pop('seconds'):.0f}s: {counts['match']} match, "
+    print(f"scanned {sum(counts[k] for k in _VERDICTS + ('skipped',))} suspects in {counts.pop('seconds'):.0f}s: "
+          f"{counts['match']} match, "
           f"{counts['inconclusive']} inconclusive, {counts['no match']} no match, {counts['failed']} failed, "
           f"{counts['skipped']} already scanned; results in {out}, evidence report {summary}")
     if counts["failed"]:
         return 3
     return 1 if counts["match"] else 0
+
+
+_VERDICTS = ("match", "no match", "inconclusive", "failed")
+FOLLOW_POLL = 2.0     # seconds between listings of the suspects folder while scan.follow keeps it open
 
 
 def _scan(client, cfg, ref, out, versions, suspects, others, force):
@@ -269,40 +275,34 @@ def _scan(client, cfg, ref, out, versions, suspects, others, force):
     for line in notices:
         print(f"[pointmark] scan: {plain_text(line, 1000)}", file=sys.stderr, flush=True)
     previous = {} if force else _previous(out)
+    follow = sc["follow"]
     t0 = time.perf_counter()
-    counts = {"match": 0, "no match": 0, "inconclusive": 0, "failed": 0, "skipped": 0}
-    for path, why in suspects:            # refused from its metadata: never opened, read or hashed
-        if why is not None:
-            _record(out, versions, {"suspect_path": str(path)}, "failed", error=f"{path}: {why}")
-            counts["failed"] += 1
-    readable = [p for p, why in suspects if why is None]
-    # suspects already scanned against these versions are skipped before any
-    # work (hashing is cheap; ranking a suspect against the catalogue is not)
-    done = {p for p in readable if previous and _already(previous.get(_sha_or_none(p)), versions, ref["keys_held"])}
-    counts["skipped"] = len(done)
-    # absolute paths: a worker of an existing cluster has its own working directory; the index's
-    # hash, taken once here, spares each triage reading and hashing the index again
-    index = (os.path.abspath(index_path), sha256_file(index_path)) if index_path else (None, None)
-    triages = {client.submit(triage, os.path.abspath(p), descriptors, *index, pure=False): p
-               for p in readable if p not in done}
-    pending = as_completed(list(triages))
-    waiting = {}
-    for fut in pending:
+    counts = dict.fromkeys(_VERDICTS + ("skipped",), 0)
+    progress = Progress.for_stream(cfg["dask"]["progress"], sys.stderr)
+    progress.start_scan(len(suspects))
+
+    def tally(verdict):
+        counts[verdict] += 1
+        progress.suspect_done(verdict)
+
+
+    def _completed(fut):
+        """One finished triage or check: the suspect's next step, or its verdict."""
         if fut in triages:
             path = triages.pop(fut)
             if fut.status != "finished":
                 _record(out, versions, {"suspect_path": str(path)}, "failed", error=_text(fut.exception()))
-                counts["failed"] += 1
-                continue
+                tally("failed")
+                return
             info = {**fut.result(), "path": str(path)}          # recorded as the folder listed it
             prev = previous.get(info["sha256"])
             if _already(prev, versions, ref["keys_held"]):   # the same bytes twice in the folder
-                counts["skipped"] += 1
-                continue
+                tally("skipped")
+                return
             verdict = _quick(info, ref, out, versions)
             if verdict:
-                counts[verdict] += 1
-                continue
+                tally(verdict)
+                return
             view = _scope(issued, prev, state, out)
             info["prev"] = prev
             info["candidates"] = candidates(info, set(view) | set(ref["unheld"]), sc["top_k"],
@@ -322,7 +322,7 @@ def _scan(client, cfg, ref, out, versions, suspects, others, force):
             info["queue"] = [(view[a], [str(paths[a])] if a in paths else [], stage[a] == "deep")
                              for a in checked if stage[a] is not None]
             if not _submit_next(client, info, materials, store, detect_params, waiting, pending):
-                counts[_finish(out, versions, info, detect_params.epsilon, store, ref["keys_held"])] += 1
+                tally(_finish(out, versions, info, detect_params.epsilon, store, ref["keys_held"]))
         else:
             info = waiting.pop(fut)
             if fut.status == "finished":
@@ -332,9 +332,97 @@ def _scan(client, cfg, ref, out, versions, suspects, others, force):
             matched = decide(info["checks"], detect_params.epsilon, _prior(info), info["planned"])["accused"]
             if matched or not _submit_next(client, info, materials, store, detect_params, waiting, pending):
                 verdict = _finish(out, versions, info, detect_params.epsilon, store, ref["keys_held"])
-                counts[verdict] += 1
-                print(f"[pointmark] scan: {plain_text(info['path'])}: {verdict}", file=sys.stderr, flush=True)
+                tally(verdict)
+                if not isinstance(progress, Bar):             # the bar says it on its own line
+                    print(f"[pointmark] scan: {plain_text(info['path'])}: {verdict}", file=sys.stderr, flush=True)
+
+    # absolute paths: a worker of an existing cluster has its own working directory; the index's
+    # hash, taken once here, spares each triage reading and hashing the index again
+    index = (os.path.abspath(index_path), sha256_file(index_path)) if index_path else (None, None)
+    triages, waiting = {}, {}
+    pending = as_completed()
+
+    def submit(listed):
+        """Triage the readable suspects not scanned against these versions before (skipped unhashed)."""
+        for path, why in listed:            # refused from its metadata: never opened, read or hashed
+            if why is not None:
+                _record(out, versions, {"suspect_path": str(path)}, "failed", error=f"{path}: {why}")
+                tally("failed")
+        readable = [p for p, why in listed if why is None]
+        done = {p for p in readable if previous and _already(previous.get(_sha_or_none(p)), versions,
+                                                              ref["keys_held"])}
+        for _ in done:
+            tally("skipped")
+        for p in readable:
+            if p not in done:
+                fut = client.submit(triage, os.path.abspath(p), descriptors, *index, pure=False)
+                triages[fut] = p
+                pending.add(fut)
+
+    submit(suspects)
+    watch, polled = {"seen": {p for p, _ in suspects}, "stat": {}}, time.monotonic()
+    while True:
+        for fut in pending:
+            if follow and time.monotonic() - polled >= FOLLOW_POLL:    # files that appeared meanwhile
+                submit(_new_suspects(sc["suspects"], out, watch, progress))
+                polled = time.monotonic()
+            _completed(fut)
+        new = _new_suspects(sc["suspects"], out, watch, progress, wait=follow) if follow else []
+        if not new:
+            break
+        submit(new)
+    progress.finish()
     return {**counts, "seconds": time.perf_counter() - t0}, notices
+
+
+def _new_suspects(source, out, watch, progress, wait=0.0):
+    """Suspect files that appeared since the last listing, once settled, for ``scan.follow``.
+
+    A new file is taken when its size and modification time are the same at
+    two listings :data:`FOLLOW_POLL` seconds or more apart (a crawler may
+    still be writing it); hidden files (temporary names) are never suspects.
+    With ``wait``, lists again every :data:`FOLLOW_POLL` seconds until one
+    is taken or ``wait`` seconds pass.
+
+    Parameters
+    ----------
+    source : str, ``scan.suspects``
+    out : Path, ``scan.out``
+    watch : dict
+        ``seen`` (set of Path, taken already) and ``stat`` (Path -> (size,
+        mtime) at its last listing), updated here.
+    progress : Progress
+        Its count of suspects grows by those taken.
+    wait : float
+
+    Returns
+    -------
+    list of (Path, str or None), as :func:`_suspects`
+    """
+    deadline = time.monotonic() + wait
+    while True:
+        try:
+            listed, _ = _suspects(source, out)
+        except config_mod.ConfigError:       # a glob that matches nothing now
+            listed = []
+        taken = []
+        for path, why in listed:
+            if path in watch["seen"]:
+                continue
+            try:
+                st = path.lstat()
+                now = (st.st_size, st.st_mtime_ns)
+            except OSError:
+                continue
+            if why is not None or watch["stat"].get(path) == now:
+                taken.append((path, why))
+            watch["stat"][path] = now
+        if taken or time.monotonic() >= deadline:
+            break
+        time.sleep(FOLLOW_POLL)
+    watch["seen"].update(p for p, _ in taken)
+    progress.assets += len(taken)
+    return taken
 
 
 def _suspects(source, out):
@@ -499,9 +587,9 @@ def _finish(out, versions, info, epsilon, store, keys_held):
             notes.append(f"no evidence picture: {_text(exc)}")
     stopped = info.get("stopped", 0) + sum(c.get("stopped", 0) for c in info["checks"])
     if stopped and result["verdict"] != "match":
-        notes.append(f"{stopped} candidate original(s) stopped by the cascade: too few of the suspect's "
-                     f"descriptors vote for them to hold a part of one (scan.deep_votes), and no whole copy "
-                     f"was found (scan.quick_shape); their recipients count in the threshold")
+        notes.append(f"{stopped} candidate original(s) stopped by the cascade: too far in shape (scan.shape_gate), "
+                     f"or no whole copy found and too few of the suspect's descriptors voting for them to hold "
+                     f"a part of one (scan.deep_votes); their recipients count in the threshold")
     regs = [g["registration"] for c in info["checks"] for g in c["groups"]]
     # the accused's registration, else the best one (most overlap) of any candidate
     reg = top["registration"] if top else max(regs, key=lambda r: min(r.get("fitness", 0), r.get("coverage", 0)),

@@ -27,17 +27,17 @@ def test_only_assets_in_view_are_candidates_and_the_margin_counts_from_the_neare
     assert "gone" not in _candidates(info, {"a", "b"}, 2, 1.6)
 
 
-def test_the_cascade_sends_voted_candidates_deep_near_shapes_quick_and_stops_the_rest():
-    info = {"index_ranking": ["x", "a", "b", "c", "d", "e"], "index_votes": [float("inf"), 0.31, 0.02, -0.01, 0, 0],
+def test_the_cascade_stops_far_shapes_and_sends_only_voted_candidates_deep():
+    info = {"index_ranking": ["x", "a", "b", "c", "d", "e"], "index_votes": [float("inf"), 0.31, 0.02, -0.01, 0, 0.5],
             "ranking": ["c", "b", "a", "d", "x", "e"], "distances": [0.01, 0.04, 0.2, 0.3, 0.5, 0.9]}
     picked = ["a", "b", "c", "d", "e", "x"]
-    assert cascade(info, picked, 0.02, 0.05) == {"a": "deep", "b": "deep", "c": "quick", "d": None, "e": None,
-                                                 "x": "deep"}
-    assert cascade(info, picked, 0.05, 0.25) == {"a": "deep", "b": "quick", "c": "quick", "d": None, "e": None,
-                                                 "x": "deep"}
-    assert set(cascade(info, picked, None, 0.05).values()) == {"deep"}             # no gate on the deep steps
-    assert cascade(info, picked, 0.5, None) == {**dict.fromkeys(picked, "quick"), "x": "deep"}
-    assert cascade(info, ["f"], 0.5, 0.05) == {"f": "deep"}        # not indexed: deep
+    assert cascade(info, picked, 0.02, 0.25) == {"a": "deep", "b": "deep", "c": "quick", "d": None, "e": None,
+                                                 "x": None}
+    assert cascade(info, picked, 0.05, 0.6) == {"a": "deep", "b": "quick", "c": "quick", "d": "quick", "e": None,
+                                                "x": "deep"}
+    assert cascade(info, picked, None, None) == dict.fromkeys(picked, "deep")       # the cascade off
+    assert cascade(info, picked, 0.5, None) == {**dict.fromkeys(picked, "quick"), "e": "deep", "x": "deep"}
+    assert cascade(info, ["f"], 0.5, 0.05) == {"f": "deep"}        # neither indexed nor ranked: deep
     assert cascade({}, ["a"], 0.5, 0.05) == {"a": "deep"}          # no index: deep
 
 

@@ -189,3 +189,47 @@ def test_copies_of_an_original_since_revised_stay_attributable_and_never_read_no
     assert "asset-0.ply: missing" in row["error"]
     # a copy of the bytes at hand is still attributed
     assert _latest(tmp)["revision.ply"]["verdict"] == "match" and _latest(tmp)["revision.ply"]["recipient"] == "carol"
+
+
+def test_a_following_scan_takes_files_that_appear_while_it_runs(world, scan):
+    import threading
+    import time
+
+    tmp, _ = world
+    late = attacks.apply_chain(read_points(tmp / "out" / "marked" / "alice" / "asset-1.pcd").points,
+                               [("random_similarity", None), ("shuffle", None)], 5)
+
+    def crawler():               # as a crawler saves: a hidden temporary name, then the rename
+        time.sleep(1.0)
+        write_array(tmp / "suspects" / "tmp", ".late", late, "ply")
+        (tmp / "suspects" / "tmp" / ".late.ply").rename(tmp / "suspects" / "late.ply")
+
+    thread = threading.Thread(target=crawler)
+    thread.start()
+    try:
+        res = scan(tmp, "--set", "scan.follow=8")
+    finally:
+        thread.join()
+    assert res.returncode == 1, res.stdout + res.stderr
+    assert "scanned 2 suspects" in res.stdout
+    latest = _latest(tmp)
+    assert latest["found.ply"]["recipient"] == "bob" and latest["late.ply"]["recipient"] == "alice"
+    assert "suspects 2/2" in res.stderr                   # the progress counts the file that came late
+
+
+def test_the_cascade_stops_far_candidates_unregistered_and_still_counts_their_recipients(world, scan):
+    from pipeline.demo import procedural_shape
+
+    tmp, _ = world
+    write_array(tmp / "suspects", "stranger", procedural_shape("shell", 3000, seed=7) * 4.0, "ply")
+    cfg = yaml.safe_load((tmp / "scan.yaml").read_text())
+    cfg["scan"].update(top_k=2, shape_gate=1e-6, deep_votes=1.0)   # nothing is near enough to register
+    (tmp / "scan.yaml").write_text(yaml.safe_dump(cfg))
+    res = scan(tmp)
+    assert res.returncode == 0, res.stdout + res.stderr
+    row = _latest(tmp)["stranger.ply"]
+    assert row["verdict"] == "no match" and row["n_stopped"] == 2
+    assert row["n_checked"] == 4                          # both candidates' two recipients, never scored
+    assert row["seconds_registration"] == 0.0 and "stopped by the cascade" in row["note"]
+    # the copy of asset-0 is also stopped at so tight a gate: the gate, not the scan, decides what is missed
+    assert _latest(tmp)["found.ply"]["verdict"] == "no match" and _latest(tmp)["found.ply"]["n_stopped"] == 2
