@@ -109,6 +109,8 @@ def measure(n_procs="1"):
         order += leaks[i * step:(i + 1) * step] + [n]
     order += leaks[len(negs) * step:]
     todo = [(n, truth[n], paths, index_path) for n in order if n not in done]
+    if os.environ.get("CASCADE_REVERSE") == "1":        # a second process from the other end
+        todo.reverse()
     with mp.get_context("spawn").Pool(int(n_procs)) as pool, log.open("a") as fh:
         for k, row in enumerate(pool.imap(_one, todo)):
             fh.write(json.dumps(row) + "\n")
@@ -121,7 +123,7 @@ def summary(votes=None, shape=None):
     """The gates' miss rate on the leaks and the checks they leave an innocent, at ``votes`` and ``shape``."""
     import numpy as np
 
-    rows = [json.loads(line) for line in (OUT / "measure.jsonl").read_text().splitlines()]
+    rows = list({r["name"]: r for r in map(json.loads, (OUT / "measure.jsonl").read_text().splitlines())}.values())
     leaks = [r for r in rows if r["kind"] == "leak"]
     negs = [r for r in rows if r["kind"] != "leak"]
     undecided = [r for r in leaks if not r["quick"][r["asset"]][0]]

@@ -264,115 +264,143 @@ FOLLOW_POLL = 2.0     # seconds between listings of the suspects folder while sc
 
 def _scan(client, cfg, ref, out, versions, suspects, others, force):
     """The scan's work once the scheduler is reached: the verdict counts (and seconds) and the notices."""
-    from distributed import as_completed
-
-    sc, store, detect_params = cfg["scan"], ref["store"], config_mod.detect_params(cfg)
-    materials, issued, paths = ref["materials"], ref["issued"], ref["paths"]
     out.mkdir(parents=True, exist_ok=True)
     state = _save_state(out, versions, [p.name for p in ref["ledger"].parts()], ref["assets"])
     index_path, descriptors = _ranked_by(ref, out)
     notices = _notices(ref, others)
     for line in notices:
         print(f"[pointmark] scan: {plain_text(line, 1000)}", file=sys.stderr, flush=True)
-    previous = {} if force else _previous(out)
-    follow = sc["follow"]
     t0 = time.perf_counter()
-    counts = dict.fromkeys(_VERDICTS + ("skipped",), 0)
-    progress = Progress.for_stream(cfg["dask"]["progress"], sys.stderr)
-    progress.start_scan(len(suspects))
+    work = _Work(client, cfg, ref, out, versions, state, {} if force else _previous(out), index_path, descriptors)
+    work.progress.start_scan(len(suspects))
+    work.submit(suspects)
+    watch, polled, follow = {"seen": {p for p, _ in suspects}, "stat": {}}, time.monotonic(), cfg["scan"]["follow"]
+    while True:
+        for fut in work.pending:
+            if follow and time.monotonic() - polled >= FOLLOW_POLL:    # files that appeared meanwhile
+                work.submit(_new_suspects(cfg["scan"]["suspects"], out, watch, work.progress))
+                polled = time.monotonic()
+            work.done(fut)
+        new = _new_suspects(cfg["scan"]["suspects"], out, watch, work.progress, wait=follow) if follow else []
+        if not new:
+            break
+        work.submit(new)
+    work.progress.finish()
+    return {**work.counts, "seconds": time.perf_counter() - t0}, notices
 
-    def tally(verdict):
-        counts[verdict] += 1
-        progress.suspect_done(verdict)
 
+class _Work:
+    """A scan's suspects in flight: their triage, their candidate checks in order, their verdicts."""
 
-    def _completed(fut):
-        """One finished triage or check: the suspect's next step, or its verdict."""
-        if fut in triages:
-            path = triages.pop(fut)
-            if fut.status != "finished":
-                _record(out, versions, {"suspect_path": str(path)}, "failed", error=_text(fut.exception()))
-                tally("failed")
-                return
-            info = {**fut.result(), "path": str(path)}          # recorded as the folder listed it
-            prev = previous.get(info["sha256"])
-            if _already(prev, versions, ref["keys_held"]):   # the same bytes twice in the folder
-                tally("skipped")
-                return
-            verdict = _quick(info, ref, out, versions)
-            if verdict:
-                tally(verdict)
-                return
-            view = _scope(issued, prev, state, out)
-            info["prev"] = prev
-            info["candidates"] = candidates(info, set(view) | set(ref["unheld"]), sc["top_k"],
-                                             sc["shape_margin"])
-            info["unheld"] = unheld_copies([r for rows in ref["unheld"].values() for r in rows],
-                                           set(info["candidates"]), info["sha256"])
-            info["lost"] = [r for rows in ref["lost"].values() for r in rows]
-            checked = [a for a in info["candidates"] if a in view]
-            info["planned"] = planned_recipients([view[a] for a in checked], materials)
-            info["checks"], info["errors"] = [], []
-            # candidates are checked best-ranked first and the search
-            # stops at the first match: the threshold counts every
-            # recipient of every candidate planned, so stopping early
-            # adds no chance to accuse
-            stage = cascade(info, checked, *config_mod.cascade_gates(cfg))
-            info["stopped"] = sum(stage[a] is None for a in checked)      # not registered at all
-            info["queue"] = [(view[a], [str(paths[a])] if a in paths else [], stage[a] == "deep")
-                             for a in checked if stage[a] is not None]
-            if not _submit_next(client, info, materials, store, detect_params, waiting, pending):
-                tally(_finish(out, versions, info, detect_params.epsilon, store, ref["keys_held"]))
-        else:
-            info = waiting.pop(fut)
-            if fut.status == "finished":
-                info["checks"].append(fut.result())
-            else:
-                info["errors"].append(_text(fut.exception()))
-            matched = decide(info["checks"], detect_params.epsilon, _prior(info), info["planned"])["accused"]
-            if matched or not _submit_next(client, info, materials, store, detect_params, waiting, pending):
-                verdict = _finish(out, versions, info, detect_params.epsilon, store, ref["keys_held"])
-                tally(verdict)
-                if not isinstance(progress, Bar):             # the bar says it on its own line
-                    print(f"[pointmark] scan: {plain_text(info['path'])}: {verdict}", file=sys.stderr, flush=True)
+    def __init__(self, client, cfg, ref, out, versions, state, previous, index_path, descriptors):
+        from distributed import as_completed
 
-    # absolute paths: a worker of an existing cluster has its own working directory; the index's
-    # hash, taken once here, spares each triage reading and hashing the index again
-    index = (os.path.abspath(index_path), sha256_file(index_path)) if index_path else (None, None)
-    triages, waiting = {}, {}
-    pending = as_completed()
+        self.client, self.cfg, self.ref, self.out, self.versions = client, cfg, ref, out, versions
+        self.state, self.previous, self.descriptors = state, previous, descriptors
+        self.detect_params = config_mod.detect_params(cfg)
+        # absolute paths: a worker of an existing cluster has its own working directory; the index's
+        # hash, taken once here, spares each triage reading and hashing the index again
+        self.index = (os.path.abspath(index_path), sha256_file(index_path)) if index_path else (None, None)
+        self.counts = dict.fromkeys(_VERDICTS + ("skipped",), 0)
+        self.progress = Progress.for_stream(cfg["dask"]["progress"], sys.stderr)
+        self.triages, self.waiting, self.pending = {}, {}, as_completed()
 
-    def submit(listed):
+    def tally(self, verdict):
+        self.counts[verdict] += 1
+        self.progress.suspect_done(verdict)
+
+    def submit(self, listed):
         """Triage the readable suspects not scanned against these versions before (skipped unhashed)."""
         for path, why in listed:            # refused from its metadata: never opened, read or hashed
             if why is not None:
-                _record(out, versions, {"suspect_path": str(path)}, "failed", error=f"{path}: {why}")
-                tally("failed")
+                _record(self.out, self.versions, {"suspect_path": str(path)}, "failed", error=f"{path}: {why}")
+                self.tally("failed")
         readable = [p for p, why in listed if why is None]
-        done = {p for p in readable if previous and _already(previous.get(_sha_or_none(p)), versions,
-                                                              ref["keys_held"])}
-        for _ in done:
-            tally("skipped")
+        # suspects already scanned against these versions are skipped before any
+        # work (hashing is cheap; ranking a suspect against the catalogue is not)
+        done = {p for p in readable if self.previous and _already(self.previous.get(_sha_or_none(p)),
+                                                                   self.versions, self.ref["keys_held"])}
         for p in readable:
-            if p not in done:
-                fut = client.submit(triage, os.path.abspath(p), descriptors, *index, pure=False)
-                triages[fut] = p
-                pending.add(fut)
+            if p in done:
+                self.tally("skipped")
+                continue
+            fut = self.client.submit(triage, os.path.abspath(p), self.descriptors, *self.index, pure=False)
+            self.triages[fut] = p
+            self.pending.add(fut)
 
-    submit(suspects)
-    watch, polled = {"seen": {p for p, _ in suspects}, "stat": {}}, time.monotonic()
-    while True:
-        for fut in pending:
-            if follow and time.monotonic() - polled >= FOLLOW_POLL:    # files that appeared meanwhile
-                submit(_new_suspects(sc["suspects"], out, watch, progress))
-                polled = time.monotonic()
-            _completed(fut)
-        new = _new_suspects(sc["suspects"], out, watch, progress, wait=follow) if follow else []
-        if not new:
-            break
-        submit(new)
-    progress.finish()
-    return {**counts, "seconds": time.perf_counter() - t0}, notices
+    def done(self, fut):
+        """One finished triage or check: the suspect's next step, or its verdict."""
+        if fut in self.triages:
+            self._triaged(self.triages.pop(fut), fut)
+        else:
+            self._checked(self.waiting.pop(fut), fut)
+
+    def _triaged(self, path, fut):
+        out, versions, ref, sc = self.out, self.versions, self.ref, self.cfg["scan"]
+        if fut.status != "finished":
+            _record(out, versions, {"suspect_path": str(path)}, "failed", error=_text(fut.exception()))
+            self.tally("failed")
+            return
+        info = {**fut.result(), "path": str(path)}          # recorded as the folder listed it
+        prev = self.previous.get(info["sha256"])
+        if _already(prev, versions, ref["keys_held"]):   # the same bytes twice in the folder
+            self.tally("skipped")
+            return
+        verdict = _quick(info, ref, out, versions)
+        if verdict:
+            self.tally(verdict)
+            return
+        view = _scope(ref["issued"], prev, self.state, out)
+        info["prev"] = prev
+        info["candidates"] = candidates(info, set(view) | set(ref["unheld"]), sc["top_k"], sc["shape_margin"])
+        info["unheld"] = unheld_copies([r for rows in ref["unheld"].values() for r in rows],
+                                       set(info["candidates"]), info["sha256"])
+        info["lost"] = [r for rows in ref["lost"].values() for r in rows]
+        checked = [a for a in info["candidates"] if a in view]
+        # candidates are checked best-ranked first and the search stops at the
+        # first match; the cascade registers some only partly, others not at all:
+        # the threshold counts every recipient of every candidate planned, so
+        # neither adds a chance to accuse
+        info["planned"] = planned_recipients([view[a] for a in checked], ref["materials"])
+        info["checks"], info["errors"] = [], []
+        stage = cascade(info, checked, *config_mod.cascade_gates(self.cfg))
+        info["stopped"] = sum(stage[a] is None for a in checked)      # not registered at all
+        info["queue"] = [(view[a], [str(ref["paths"][a])] if a in ref["paths"] else [], stage[a] == "deep")
+                         for a in checked if stage[a] is not None]
+        if not self._submit_next(info):
+            self._finished(info)
+
+    def _checked(self, info, fut):
+        if fut.status == "finished":
+            info["checks"].append(fut.result())
+        else:
+            info["errors"].append(_text(fut.exception()))
+        matched = decide(info["checks"], self.detect_params.epsilon, _prior(info), info["planned"])["accused"]
+        if matched or not self._submit_next(info):
+            self._finished(info)
+
+    def _finished(self, info):
+        verdict = _finish(self.out, self.versions, info, self.detect_params.epsilon, self.ref["store"],
+                          self.ref["keys_held"])
+        self.tally(verdict)
+        if not isinstance(self.progress, Bar):             # the bar says it on its own line
+            print(f"[pointmark] scan: {plain_text(info['path'])}: {verdict}", file=sys.stderr, flush=True)
+
+    def _submit_next(self, info):
+        """Submit the suspect's next candidate check; False when none is left.
+
+        Checks run before the triage of further suspects (higher priority), so
+        verdicts come out while a large folder is still being ranked.
+        """
+        if not info["queue"]:
+            return False
+        rows, places, deep = info["queue"].pop(0)
+        fut = self.client.submit(check_asset, os.path.abspath(info["path"]), rows, self.ref["materials"],
+                                 os.path.abspath(self.ref["store"]), self.detect_params,
+                                 places=[os.path.abspath(p) for p in places], deep=deep, pure=False, priority=1)
+        self.waiting[fut] = info
+        self.pending.add(fut)
+        return True
 
 
 def _new_suspects(source, out, watch, progress, wait=0.0):
@@ -490,23 +518,6 @@ def _already(prev, versions, keys_held):
     """
     return (prev is not None and (prev["ledger_version"], prev["catalogue_version"]) == versions
             and not prev.get("n_unchecked"))
-
-
-def _submit_next(client, info, materials, store, detect_params, waiting, pending):
-    """Submit the suspect's next candidate check; False when none is left.
-
-    Checks run before the triage of further suspects (higher priority), so
-    verdicts come out while a large folder is still being ranked.
-    """
-    if not info["queue"]:
-        return False
-    rows, places, deep = info["queue"].pop(0)
-    fut = client.submit(check_asset, os.path.abspath(info["path"]), rows, materials, os.path.abspath(store),
-                        detect_params, places=[os.path.abspath(p) for p in places], deep=deep, pure=False,
-                        priority=1)
-    waiting[fut] = info
-    pending.add(fut)
-    return True
 
 
 def _text(exc):

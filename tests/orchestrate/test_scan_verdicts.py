@@ -10,6 +10,7 @@ in-process Dask cluster; the feature index a first scan builds is kept for the s
 import os
 import shutil
 from pathlib import Path
+import numpy as np
 
 import pytest
 import yaml
@@ -233,3 +234,57 @@ def test_the_cascade_stops_far_candidates_unregistered_and_still_counts_their_re
     assert row["seconds_registration"] == 0.0 and "stopped by the cascade" in row["note"]
     # the copy of asset-0 is also stopped at so tight a gate: the gate, not the scan, decides what is missed
     assert _latest(tmp)["found.ply"]["verdict"] == "no match" and _latest(tmp)["found.ply"]["n_stopped"] == 2
+
+
+@pytest.fixture()
+def apart_scheduler(tmp_path):
+    """A Dask scheduler and two one-thread workers started as separate processes, as an operator starts them."""
+    import subprocess
+    import sys
+
+    from distributed import Client
+
+    file = tmp_path / "scheduler.json"
+    env = {k: v for k, v in os.environ.items() if "SECRET" not in k and k != "DASK_SCHEDULER_ADDRESS"}
+    env.update(OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1",
+               DASK_DISTRIBUTED__WORKER__MULTIPROCESSING_METHOD="spawn")
+    procs = [subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--scheduler-file",
+                               str(file), "--port", "0", "--dashboard-address", ":0"], env=env, cwd=tmp_path,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    try:
+        procs.append(subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", "--scheduler-file",
+                                       str(file), "--nthreads", "1", "--nworkers", "2", "--no-dashboard"],
+                                      env=env, cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        with Client(scheduler_file=str(file), timeout="60s") as client:
+            client.wait_for_workers(2, timeout=120)
+            yield client.scheduler.address
+    finally:
+        for p in reversed(procs):
+            p.terminate()
+            p.wait(timeout=60)
+
+
+def test_a_mixed_folder_is_scanned_on_a_scheduler_started_apart_and_given_by_address(world, scan, apart_scheduler):
+    from pipeline.demo import procedural_shape
+
+    tmp, _ = world
+    marked = tmp / "out" / "marked"
+    rng = np.random.default_rng(3)
+    leaks = {"leak-alice-1": (marked / "alice" / "asset-1.pcd", [("noise", 0.003)]),
+             "leak-bob-0": (marked / "bob" / "asset-0.ply", [("removal", 0.3), ("random_similarity", None)]),
+             "leak-alice-0": (marked / "alice" / "asset-0.ply", [("random_similarity", None)])}
+    for name, (path, chain) in leaks.items():
+        write_array(tmp / "suspects", name, attacks.apply_chain(read_points(path).points,
+                                                                chain + [("shuffle", None)], rng), "ply")
+    innocents = {"stranger": procedural_shape("torus", 3000, seed=77) * 10,
+                 "unmarked": attacks.apply_chain(read_points(tmp / "assets" / "asset-1.pcd").points,
+                                                 [("random_similarity", None), ("shuffle", None)], rng)}
+    for name, points in innocents.items():
+        write_array(tmp / "suspects", name, points, "ply")
+    res = scan(tmp, "--set", f"dask.address={apart_scheduler}")
+    assert res.returncode == 1, res.stdout + res.stderr
+    latest = _latest(tmp)
+    named = {Path(k).stem: (r["verdict"], r["recipient"]) for k, r in latest.items()}
+    assert named == {"found": ("match", "bob"), "leak-alice-1": ("match", "alice"), "leak-bob-0": ("match", "bob"),
+                     "leak-alice-0": ("match", "alice"), "stranger": ("no match", None),
+                     "unmarked": ("no match", None)}
