@@ -8,12 +8,13 @@ asset; where they leave it undecided, and on every negative, the triage
 (descriptor votes over the catalogue index, the candidates).  One JSON line
 per suspect goes to ``bench/results/leaks/cascade/measure.jsonl`` (resumable).
 
-``python bench/cascade.py summary [DEEP_VOTES SHAPE_GATE]`` prints the leaks
-whose asset the quick steps settle, per attack; for the rest, the vote share of
-their asset (what ``scan.deep_votes`` is calibrated on); the shape distances of
-every leak's asset (``scan.shape_gate``); and at the two gates, the leaks they
-would lose (the miss rate they add) and the candidates an innocent suspect
-still registers, and takes deep.
+``python bench/cascade.py summary [DEEP_VOTES DEEP_SHAPE QUICK_SHAPE]`` prints
+the leaks whose asset the quick steps settle, per attack; for the rest, the vote
+share of their asset; the shape distances of every leak's asset; and at the
+three gates (:func:`pipeline.orchestrate.candidates.cascade`), the leaks they
+would lose (the miss rate they add: a settled leak's votes are not measured, so
+it counts as passing only by its shape) and the candidates an innocent suspect
+still registers, and may take deep.
 """
 
 from __future__ import annotations
@@ -119,8 +120,8 @@ def measure(n_procs="1"):
                   f"quick {sum(s for _, s in row['quick'].values()):.1f} s", flush=True)
 
 
-def summary(votes=None, shape=None):
-    """The gates' miss rate on the leaks and the checks they leave an innocent, at ``votes`` and ``shape``."""
+def summary(*gates):
+    """The gates' miss rate on the leaks and the checks they leave an innocent, at ``gates``."""
     import numpy as np
 
     rows = list({r["name"]: r for r in map(json.loads, (OUT / "measure.jsonl").read_text().splitlines())}.values())
@@ -150,25 +151,29 @@ def summary(votes=None, shape=None):
             print(f"{group}: quick steps on the asset median {np.median(quick):.1f} s, p95 {np.percentile(quick, 95):.1f} s")
         if tri:
             print(f"{group}: triage median {np.median(tri):.1f} s, p95 {np.percentile(tri, 95):.1f} s")
-    if votes is not None:
-        votes, gate = float(votes), float(shape)
-        lost = [(r["name"], r["attack"]) for r in leaks if _stage(r, r["asset"], votes, gate) is None
-                or (r in undecided and _stage(r, r["asset"], votes, gate) != "deep")]
-        stages = [[_stage(r, a, votes, gate) for a in r["candidates"]] for r in negs]
+    if gates:
+        gates = tuple(map(float, gates))
+        lost = [(r["name"], r["attack"]) for r in leaks if _stage(r, r["asset"], gates) is None
+                or (r in undecided and _stage(r, r["asset"], gates) != "deep")]
+        stages = [[_stage(r, a, gates) for a in r["candidates"]] for r in negs]
         quick = [sum(s is not None for s in st) for st in stages]
         deep = [sum(s == "deep" for s in st) for st in stages]
-        print(f"deep_votes {votes}, shape_gate {gate}: leaks lost {len(lost)} of {len(leaks)} {lost}; per negative, "
-              f"candidates registered median {np.median(quick):.0f} (most {max(quick)}), of them allowed deep "
-              f"median {np.median(deep):.0f} (p95 {np.percentile(deep, 95):.0f}, most {max(deep)}), "
+        print(f"deep_votes, deep_shape, quick_shape {gates}: leaks lost {len(lost)} of {len(leaks)} {lost}; per "
+              f"negative, candidates registered median {np.median(quick):.0f} (most {max(quick)}), of them "
+              f"allowed deep median {np.median(deep):.0f} (p95 {np.percentile(deep, 95):.0f}, most {max(deep)}), "
               f"of {np.median([len(r['candidates']) for r in negs]):.0f} candidates")
 
 
-def _stage(row, asset, votes, gate):
+def _stage(row, asset, gates):
     from pipeline.orchestrate.candidates import cascade
 
-    info = {"index_ranking": list(row.get("votes", {})), "index_votes": list(row.get("votes", {}).values()),
-            "ranking": list(row.get("shape", {})), "distances": list(row.get("shape", {}).values())}
-    return cascade(info, [asset], votes, gate)[asset]
+    votes, shape = row.get("votes", {}), row.get("shape", {})
+    info = {"index_ranking": list(votes), "index_votes": list(votes.values()),
+            "ranking": list(shape), "distances": list(shape.values())}
+    if asset not in votes:            # a leak the quick steps settled: its votes were not measured
+        info["index_ranking"].append(asset)
+        info["index_votes"].append(float("-inf"))
+    return cascade(info, [asset], *gates)[asset]
 
 
 if __name__ == "__main__":

@@ -270,19 +270,23 @@ SCAN = _section("Leak-detection scans (pointmark scan).", {
                  "Keep the scan open for files that appear in scan.suspects while it runs: each is taken "
                  "once its size and time hold for 2 s, and the scan ends after this many seconds without "
                  "a new one.  null: the files there when it starts.", minimum=0, maximum=86400),
-    "shape_gate": _p(("number", "null"), None,
-                     "The scan's cascade: a candidate whose shape-distribution distance (the nearest of "
-                     "the suspect's views, whole, without outliers, object by object, to the asset's, whole "
-                     "or cut) exceeds this is not registered nor scored; its recipients still count in the "
-                     "threshold.  null: every candidate is registered.  Calibrated on the leak benchmark "
-                     "(docs/method.md, Leak scans).", minimum=0, maximum=1000),
     "deep_votes": _p(("number", "null"), None,
-                     "The scan's cascade: a candidate that the quick registration steps (principal frames, "
-                     "ICP, the suspect's separate objects) leave undecided goes on to the deep ones (global "
-                     "RANSAC, the rotation search: 10 to 100 times the cost) only when its share of the "
-                     "suspect's descriptor votes, less its background share, reaches this; the others are "
-                     "not scored (their recipients still count).  null: every candidate may go deep.",
-                     minimum=-1, maximum=1),
+                     "The scan's cascade (docs/method.md, Leak scans): a candidate may go on to the deep "
+                     "registration steps (global RANSAC, the rotation search: 10 to 100 times the cost of the "
+                     "quick ones) when its share of the suspect's descriptor votes, less its background share, "
+                     "reaches this, or when its shape distance is within deep_shape.  null: every candidate "
+                     "may.", minimum=-1, maximum=1),
+    "deep_shape": _p(("number", "null"), None,
+                     "The scan's cascade: shape-distribution distance (the nearest of the suspect's views, "
+                     "whole, without outliers, object by object, to the asset's, whole or cut) within which a "
+                     "candidate may go on to the deep steps whatever its votes.  null: every candidate may.",
+                     minimum=0, maximum=1000),
+    "quick_shape": _p(("number", "null"), None,
+                      "The scan's cascade: a candidate that may not go deep gets the quick registration steps "
+                      "(principal frames, ICP, the suspect's separate objects) when its shape distance is "
+                      "within this, and is scored if they settle it; the others are not registered.  What the "
+                      "cascade stops is never scored, and its recipients still count in the threshold.  "
+                      "null: every candidate gets the quick steps.", minimum=0, maximum=1000),
     "max_bit_errors": _p("integer", 3, "A decoded payload within this many bits of an issued one "
                          "identifies its recipient.", minimum=0,
                          maximum=256),
@@ -770,8 +774,9 @@ def detect_params(cfg):
 
 
 def cascade_gates(cfg):
-    """(deep_votes, shape_gate) of a validated config: the scan's cascade, for scan and detect --ledger."""
-    return cfg["scan"]["deep_votes"], cfg["scan"]["shape_gate"]
+    """(deep_votes, deep_shape, quick_shape) of a validated config: the scan's cascade (scan, detect --ledger)."""
+    sc = cfg["scan"]
+    return sc["deep_votes"], sc["deep_shape"], sc["quick_shape"]
 
 
 def dataclass_keys():

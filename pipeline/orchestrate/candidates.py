@@ -107,29 +107,33 @@ def candidates(info, view, top_k, shape_margin):
     return list(dict.fromkeys(pick))
 
 
-def cascade(info, picked, deep_votes, shape_gate):
+def cascade(info, picked, deep_votes, deep_shape, quick_shape):
     """How far each candidate's check may go: the scan's cascade, decided from the triage alone.
 
-    A copy, a crop, the asset in a scene or in junk: each has a view whose
-    shape distribution is near the asset's (:func:`triage`), so a candidate
-    farther than ``shape_gate`` is not registered at all (None).  The quick
-    registration steps (:func:`pipeline.watermark.register`) settle whole
-    copies and scenes holding the asset whole; the deep ones (global RANSAC,
-    the rotation search, 10 to 100 times the cost) place what is left, a
-    part of the asset, and such a suspect's local descriptors vote for its
-    asset: a candidate goes "deep" when its vote share (less its background
-    share) also reaches ``deep_votes``, else "quick".  A candidate without
-    votes or a shape distance (not indexed, no index) goes deep.  Both
-    thresholds are calibrated on the leak benchmark (``bench/cascade.py``);
-    what a stage stops is never scored, and its recipients still count in
-    the threshold.
+    The quick registration steps (:func:`pipeline.watermark.register`)
+    settle whole copies, sparse ones and scenes holding the asset whole; the
+    deep ones (global RANSAC, the rotation search, 10 to 100 times the cost)
+    place what is left, a part of the asset or the asset in junk.  A leak
+    shows in its triage either way: a crop's local descriptors vote for its
+    asset, a crop or a copy in junk has a view (cut, dense, object by
+    object) near the asset's in shape distribution.  So a candidate goes
+    "deep" when its vote share (less its background share) reaches
+    ``deep_votes`` or its shape distance is at most ``deep_shape``; else
+    "quick" (the quick steps only; if they leave it undecided it is not
+    scored) when its shape distance is at most ``quick_shape``; else it is
+    not registered at all (None).  A candidate without votes or a shape
+    distance (not indexed, no index) goes deep.  The thresholds are
+    calibrated on the leak benchmark (``bench/cascade.py``); what a stage
+    stops is never scored, and its recipients still count in the threshold.
 
     Parameters
     ----------
     info : dict, from :func:`triage`
     picked : list of str, asset keys (from :func:`candidates`)
-    deep_votes, shape_gate : float or None
-        ``scan.deep_votes`` and ``scan.shape_gate``; None: no gate there.
+    deep_votes, deep_shape, quick_shape : float or None
+        ``scan.deep_votes``, ``scan.deep_shape`` and ``scan.quick_shape``;
+        None in ``deep_votes`` (or ``deep_shape``): every candidate may go
+        deep; None in ``quick_shape``: every candidate gets the quick steps.
 
     Returns
     -------
@@ -139,12 +143,13 @@ def cascade(info, picked, deep_votes, shape_gate):
     shape = dict(zip(info.get("ranking", []), info.get("distances", [])))
     out = {}
     for a in picked:
-        if shape_gate is not None and shape.get(a, 0.0) > shape_gate:
-            out[a] = None
-        elif deep_votes is None or votes.get(a, float("inf")) >= deep_votes:
+        v, d = votes.get(a, float("inf")), shape.get(a, 0.0)
+        if deep_votes is None or deep_shape is None or v >= deep_votes or d <= deep_shape:
             out[a] = "deep"
-        else:
+        elif quick_shape is None or d <= quick_shape:
             out[a] = "quick"
+        else:
+            out[a] = None
     return out
 
 

@@ -47,7 +47,7 @@ def _rank(suspect_path, groups, top_k, shape_margin, gates, store):
     all returned, ranked, so the first match comes early.  Returns (asset,
     source sha256) keys, and how far each one's check may go
     (:func:`pipeline.orchestrate.candidates.cascade` at ``gates``, the
-    config's ``deep_votes`` and ``shape_gate``; "deep" for one original).
+    config's ``deep_votes``, ``deep_shape`` and ``quick_shape``; "deep" for one original).
     """
 
     if len(groups) == 1:
@@ -98,8 +98,8 @@ def detect_from_ledger(suspect, ledger_dir, secret, detect_params, *, asset=None
     ``shape_margin`` (None: the config's ``scan.top_k`` and ``scan.shape_margin``),
     so parts of an asset and assets inside a scene are found as a scan
     finds them.  They are checked best-ranked first, up to the first match,
-    each through the scan's cascade at ``gates`` ((deep_votes, shape_gate);
-    "config": the config's ``scan.deep_votes`` and ``scan.shape_gate``).
+    each through the scan's cascade at ``gates`` ((deep_votes, deep_shape,
+    quick_shape); "config": the config's ``scan`` values).
 
     Returns
     -------

@@ -598,9 +598,9 @@ def _finish(out, versions, info, epsilon, store, keys_held):
             notes.append(f"no evidence picture: {_text(exc)}")
     stopped = info.get("stopped", 0) + sum(c.get("stopped", 0) for c in info["checks"])
     if stopped and result["verdict"] != "match":
-        notes.append(f"{stopped} candidate original(s) stopped by the cascade: too far in shape (scan.shape_gate), "
-                     f"or no whole copy found and too few of the suspect's descriptors voting for them to hold "
-                     f"a part of one (scan.deep_votes); their recipients count in the threshold")
+        notes.append(f"{stopped} candidate original(s) stopped by the cascade: no whole copy found, and too "
+                     f"few descriptor votes and too far in shape to hold a part of one (scan.deep_votes, "
+                     f"deep_shape, quick_shape); their recipients count in the threshold")
     regs = [g["registration"] for c in info["checks"] for g in c["groups"]]
     # the accused's registration, else the best one (most overlap) of any candidate
     reg = top["registration"] if top else max(regs, key=lambda r: min(r.get("fitness", 0), r.get("coverage", 0)),

@@ -27,18 +27,20 @@ def test_only_assets_in_view_are_candidates_and_the_margin_counts_from_the_neare
     assert "gone" not in _candidates(info, {"a", "b"}, 2, 1.6)
 
 
-def test_the_cascade_stops_far_shapes_and_sends_only_voted_candidates_deep():
+def test_the_cascade_sends_voted_or_near_candidates_deep_nearish_ones_quick_and_stops_the_rest():
     info = {"index_ranking": ["x", "a", "b", "c", "d", "e"], "index_votes": [float("inf"), 0.31, 0.02, -0.01, 0, 0.5],
             "ranking": ["c", "b", "a", "d", "x", "e"], "distances": [0.01, 0.04, 0.2, 0.3, 0.5, 0.9]}
     picked = ["a", "b", "c", "d", "e", "x"]
-    assert cascade(info, picked, 0.02, 0.25) == {"a": "deep", "b": "deep", "c": "quick", "d": None, "e": None,
-                                                 "x": None}
-    assert cascade(info, picked, 0.05, 0.6) == {"a": "deep", "b": "quick", "c": "quick", "d": "quick", "e": None,
-                                                "x": "deep"}
-    assert cascade(info, picked, None, None) == dict.fromkeys(picked, "deep")       # the cascade off
-    assert cascade(info, picked, 0.5, None) == {**dict.fromkeys(picked, "quick"), "e": "deep", "x": "deep"}
-    assert cascade(info, ["f"], 0.5, 0.05) == {"f": "deep"}        # neither indexed nor ranked: deep
-    assert cascade({}, ["a"], 0.5, 0.05) == {"a": "deep"}          # no index: deep
+    assert cascade(info, picked, 0.1, 0.02, 0.25) == {"a": "deep", "b": "quick", "c": "deep", "d": None,
+                                                      "e": "deep", "x": "deep"}
+    assert cascade(info, picked, 0.4, 0.05, 0.35) == {"a": "quick", "b": "deep", "c": "deep", "d": "quick",
+                                                      "e": "deep", "x": "deep"}
+    assert cascade(info, picked, 1.0, 0.0, 0.1) == {"a": None, "b": "quick", "c": "quick", "d": None, "e": None,
+                                                    "x": "deep"}
+    assert cascade(info, picked, None, 0.0, 0.0) == dict.fromkeys(picked, "deep")       # the cascade off
+    assert cascade(info, picked, 1.0, 0.0, None) == {**dict.fromkeys(picked, "quick"), "x": "deep"}
+    assert cascade(info, ["f"], 1.0, 0.0, 0.0) == {"f": "deep"}        # neither indexed nor ranked: deep
+    assert cascade({}, ["a"], 1.0, 0.0, 0.0) == {"a": "deep"}          # no index: deep
 
 
 def test_the_index_is_kept_by_its_bytes_hash_and_a_changed_file_is_never_served_stale(tmp_path):

@@ -224,7 +224,7 @@ def test_the_cascade_stops_far_candidates_unregistered_and_still_counts_their_re
     tmp, _ = world
     write_array(tmp / "suspects", "stranger", procedural_shape("shell", 3000, seed=7) * 4.0, "ply")
     cfg = yaml.safe_load((tmp / "scan.yaml").read_text())
-    cfg["scan"].update(top_k=2, shape_gate=1e-6, deep_votes=1.0)   # nothing is near enough to register
+    cfg["scan"].update(top_k=2, deep_votes=1.0, deep_shape=0.0, quick_shape=1e-6)   # nothing near enough
     (tmp / "scan.yaml").write_text(yaml.safe_dump(cfg))
     res = scan(tmp)
     assert res.returncode == 0, res.stdout + res.stderr
