@@ -5,7 +5,8 @@ benchmark into ``bench/results/leaks`` (see ``bench/leaks.py``) and picks the
 subset: every attack's leaks in turn up to ``N_LEAKS`` and every kind of negative
 in turn up to ``N_NEGATIVES``, copied into ``leaks/compare/suspects``.
 ``python bench/rescan_compare.py scan NAME [FOLDER]`` scans the subset (or another
-folder of ``leaks/compare``) with the tree it runs from into ``leaks/compare/NAME``.  ``python bench/rescan_compare.py diff A B``
+folder of ``leaks/compare``) with the tree it runs from into ``leaks/compare/NAME``
+(``RESCAN_SCAN_SETS=key=value,...`` sets ``scan`` keys, e.g. the cascade's gates).  ``python bench/rescan_compare.py diff A B``
 prints every suspect whose verdict, asset or recipient differs, and the counts.
 """
 
@@ -56,6 +57,9 @@ def scan(name, subset="suspects"):
 
     cfg = leaks._config(WORK, WORK / "manifests", WORK / "marked", "bench")
     cfg["dask"]["n_workers"] = int(__import__("os").environ.get("RESCAN_WORKERS", "1"))
+    for item in filter(None, __import__("os").environ.get("RESCAN_SCAN_SETS", "").split(",")):
+        key, value = item.split("=")              # e.g. RESCAN_SCAN_SETS=deep_votes=0.05,quick_shape=0.12
+        cfg["scan"][key] = None if value == "null" else float(value)
     cfg["scan"]["suspects"], cfg["scan"]["out"] = str(WORK / "compare" / subset), str(WORK / "compare" / name)
     t0 = time.perf_counter()
     status = run_scan(cfg, leaks.SECRET)

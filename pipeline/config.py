@@ -270,13 +270,15 @@ SCAN = _section("Leak-detection scans (pointmark scan).", {
                  "Keep the scan open for files that appear in scan.suspects while it runs: each is taken "
                  "once its size and time hold for 2 s, and the scan ends after this many seconds without "
                  "a new one.  null: the files there when it starts.", minimum=0, maximum=86400),
-    "deep_votes": _p(("number", "null"), None,
+    "deep_votes": _p(("number", "null"), 0.03,
                      "The scan's cascade (docs/method.md, Leak scans): a candidate may go on to the deep "
                      "registration steps (global RANSAC, the rotation search: 10 to 100 times the cost of the "
                      "quick ones) when its share of the suspect's descriptor votes, less its background share, "
-                     "reaches this, or when its shape distance is within deep_shape.  null: every candidate "
-                     "may.", minimum=-1, maximum=1),
-    "deep_shape": _p(("number", "null"), None,
+                     "reaches this, or when its shape distance is within deep_shape.  0.03 and 0.05 lose no "
+                     "leak of the leak benchmark's 217 (the nearest at 0.042 votes, 0.043 shape) and spare "
+                     "innocents about a third of their deep checks.  null: every candidate may.",
+                     minimum=-1, maximum=1),
+    "deep_shape": _p(("number", "null"), 0.05,
                      "The scan's cascade: shape-distribution distance (the nearest of the suspect's views, "
                      "whole, without outliers, object by object, to the asset's, whole or cut) within which a "
                      "candidate may go on to the deep steps whatever its votes.  null: every candidate may.",
