@@ -171,14 +171,12 @@ def write_suspects(work, rows, other_rows):
 
 
 def growth(work, rows, truth, n_large=300, n_queries=20):
-    """Candidate search per suspect with the catalogue and with ``n_large`` assets, exact and inverted-file.
+    """Candidate search per suspect with the catalogue and with ``n_large`` assets, exact and through a faiss IVF.
 
     Both searches use the same index (same descriptors and background prior);
     ``right`` counts queries whose leaked asset is among the top 3.
     """
-    from dataclasses import replace
-
-    from pipeline.features import InvertedFile, build_index
+    from pipeline.features import build_index
     from pipeline.io.pointcloud import read_points
 
     clouds = {r["asset_key"]: read_points(work / r["path"]).points for r in rows if r["status"] == "ok"}
@@ -188,12 +186,12 @@ def growth(work, rows, truth, n_large=300, n_queries=20):
     out = {}
     for label, cat in (("catalogue", clouds), ("grown", {**clouds, **extra})):
         t0 = time.perf_counter()
-        index = build_index(cat)
+        index = build_index(cat, ivf=False)
         built = time.perf_counter() - t0
         t0 = time.perf_counter()
-        cells = index.cells or InvertedFile.train(index.features)
+        ivf = index.with_ivf()
         trained = time.perf_counter() - t0
-        for search, variant in (("exact", replace(index, cells=None)), ("inverted file", replace(index, cells=cells))):
+        for search, variant in (("exact", index), ("faiss IVF", ivf)):
             t0 = time.perf_counter()
             right = sum(asset in [k for k, _ in variant.rank(points, top_k=3)] for points, asset in suspects)
             out[f"{label}, {search}"] = {

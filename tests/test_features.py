@@ -1,5 +1,6 @@
 """FPFH features (open3d): part-to-whole registration with scale, the catalogue index, the geometry hash."""
 
+import faiss
 import numpy as np
 import pytest
 
@@ -76,24 +77,49 @@ def index(models, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def ivf_index(index, tmp_path_factory):
-    """The same index searched through an inverted file (large catalogues), saved and loaded."""
-    built = features.FeatureIndex(index.keys, index.features, index.owner, index.hashes, index.prior,
-                                  features.InvertedFile.train(index.features))
+    """The same index searched through a faiss IVF (large catalogues), its prior recomputed, saved and loaded."""
+    built = index.with_ivf()
+    built.prior = features.background_votes(built)
     path = tmp_path_factory.mktemp("ivf") / "index.npz"
     built.save(path)
     loaded = features.FeatureIndex.load(path)
-    assert loaded.cells is not None and np.array_equal(loaded.cells.cell, built.cells.cell)
+    assert loaded.features is None and loaded.ivf.ntotal == len(index.owner)
+    assert np.array_equal(faiss.serialize_index(loaded.ivf), faiss.serialize_index(built.ivf))
     return loaded
 
 
-def test_the_inverted_file_finds_the_exact_nearest_descriptor_almost_always(models, index, ivf_index):
+def test_the_ivf_finds_the_exact_nearest_descriptor_almost_always(models, index, ivf_index):
     suspect = surface.apply_chain(models["kitten_12623"], [("crop", 0.5), ("random_similarity", None)], rng=5)
-    _, feats = features.describe(suspect)
+    feats = np.concatenate([features.describe(suspect, factor=f)[1] for f in features.QUERY_SCALES])
     exact, _ = features.nearest_exact(feats, index.features, 8)
-    approx, sim = ivf_index.cells.nearest(feats, index.features, 8)
-    assert (approx[:, 0] == exact[:, 0]).mean() > 0.97
+    approx, sim = ivf_index.nearest(feats, 8)
+    assert (approx[:, 0] == exact[:, 0]).mean() >= 0.99
+    true = np.einsum("ij,ikj->ik", feats, index.features[approx])   # the similarities of the rows found
+    assert np.abs(sim - true).max() < 1e-4                          # fp16 residuals: near exact
     assert np.all(np.diff(sim, axis=1) <= 0)          # most similar first
-    assert len(ivf_index.cells.centroids) == int(np.sqrt(len(index.features)))
+    assert ivf_index.ivf.nlist == int(np.sqrt(len(index.features)))
+    assert [k for k, _ in ivf_index.rank(suspect, top_k=3)] == [k for k, _ in index.rank(suspect, top_k=3)]
+
+
+def test_the_ivf_is_trained_alike_in_any_process_and_refuses_rows_that_are_not_fpfh(index, tmp_path):
+    import hashlib
+    import os
+    import subprocess
+    import sys
+
+    mine = hashlib.sha256(faiss.serialize_index(index.with_ivf().ivf)).hexdigest()
+    assert hashlib.sha256(faiss.serialize_index(index.with_ivf().ivf)).hexdigest() == mine
+    np.save(tmp_path / "f.npy", index.features)
+    code = ("import hashlib, sys, faiss, numpy as np; from pipeline.features import FeatureIndex; "
+            "f = np.load(sys.argv[1]); i = FeatureIndex(['a'], f, np.zeros(len(f), dtype=np.int32), ['h']); "
+            "print(hashlib.sha256(faiss.serialize_index(i.with_ivf().ivf)).hexdigest())")
+    env = {**os.environ, "OMP_NUM_THREADS": "2"}              # training runs on one thread whatever is set
+    other = subprocess.run([sys.executable, "-c", code, str(tmp_path / "f.npy")], env=env, capture_output=True,
+                           text=True, check=True).stdout.strip()
+    assert other == mine
+    noise = np.random.default_rng(0).random((500, 33)).astype(np.float32)
+    with pytest.raises(ValueError, match="not FPFH"):
+        features.train_ivf(noise / np.linalg.norm(noise, axis=1, keepdims=True), 500)
 
 
 @pytest.mark.parametrize("model,chain,search", [
@@ -103,7 +129,7 @@ def test_the_inverted_file_finds_the_exact_nearest_descriptor_almost_always(mode
     ("nikolov_birdbath_18793", "random_similarity+clutter:3", "index"),
     ("fertility_4494", "outliers:0.5", "index"),
     ("nikolov_blackvase_17337", "noise:0.5%+random_similarity", "index"),
-    # the same ranking through the inverted file of large catalogues
+    # the same ranking through the faiss IVF of large catalogues
     ("bunny_zipper_faceref_34834", "crop:0.3+random_similarity", "ivf_index"),
     ("nikolov_birdbath_18793", "random_similarity+clutter:3", "ivf_index"),
     ("fertility_4494", "outliers:0.5", "ivf_index"),
@@ -119,6 +145,29 @@ def test_an_exact_resave_ranks_first_by_its_hash(models, index):
     cow = models["spot_cow_2930"]
     ranked = index.rank(cow[::-1].astype(np.float32), top_k=3)
     assert ranked[0] == ("spot_cow_2930", float("inf"))
+
+
+def test_an_index_extended_with_more_assets_votes_as_one_built_from_all_of_them(models, index):
+    first, rest = INDEX_MODELS[:5], INDEX_MODELS[5:]
+    grown = features.build_index({k: models[k] for k in first})
+    trained = grown.with_ivf()
+    grown.extend({k: models[k] for k in rest})
+    assert grown.keys == index.keys and grown.hashes == index.hashes and grown.ivf is None
+    for name in ("features", "owner", "prior", "shapes", "shape_owner"):
+        assert np.array_equal(getattr(grown, name), getattr(index, name)), name
+    suspect = surface.apply_chain(models["nikolov_birdbath_18793"], [("crop", 0.5), ("random_similarity", None)],
+                                  rng=4)
+    _, feats = features.describe(suspect)
+    assert np.array_equal(grown.votes(feats), index.votes(feats))
+    # an IVF grows without retraining its cells, and ranks the new assets' suspects as the exact index does
+    centroids = trained.ivf.quantizer.reconstruct_n(0, trained.ivf.nlist)
+    trained.extend({k: models[k] for k in rest})
+    assert np.array_equal(trained.ivf.quantizer.reconstruct_n(0, trained.ivf.nlist), centroids)
+    assert trained.ivf.ntotal == len(index.owner) and np.array_equal(trained.owner, index.owner)
+    assert trained.keys == index.keys and trained.features is None
+    assert [k for k, _ in trained.rank(suspect, top_k=3)] == [k for k, _ in index.rank(suspect, top_k=3)]
+    with pytest.raises(ValueError, match="already indexed"):
+        trained.extend({first[0]: models[first[0]]})
 
 
 def test_outlier_and_clutter_attacks_are_parsed_and_keep_the_asset_first():

@@ -153,7 +153,8 @@ def cascade(info, picked, deep_votes, deep_shape, quick_shape):
     return out
 
 
-INDEX_FORMAT = "v4"   # v2: inverted-file cells; v3: whole and cut shape views; v4: and the dense view
+INDEX_FORMAT = "v5"   # v2: inverted-file cells; v3: whole and cut shape views; v4: and the dense view;
+                      # v5: a faiss IVF instead of the inverted file, from features.IVF_MIN rows
 
 
 def _loads(index_path):

@@ -1,0 +1,224 @@
+"""The catalogue index at scale (issue 38): build time, bytes, search time and recall of the faiss IVF.
+
+``python bench/index_scale.py [ASSETS ...]`` (default 100 1000 10000) writes
+``bench/results/index_scale.md``.
+
+Catalogues are synthetic, 3,000 descriptors an asset.  A pool of real FPFH
+descriptor sets (the 14 shared scans and 24 procedural shapes, 4 kinds x 6
+seeds, each described at the 4 query scales: 152 sets) stands in for
+asset geometry; asset ``j`` resamples 3,000 rows of pool set ``j mod 152``
+and scales every bin by log-normal noise (sigma 0.15), after which its
+three histograms are rescaled to equal sums (as FPFH's are) and each row to
+unit norm.  Assets are seeded by their number, so a catalogue is built in
+chunks of 100 and regenerated for the exact search.  A suspect is 4 x 3,000
+rows of one asset's pool set under fresh noise (sigma 0.1), voted as
+:meth:`FeatureIndex.votes` votes (8 neighbours).  Recall@1: the share of
+1,000 of the suspects' rows whose nearest row through the IVF is the exact
+nearest row (exact search over every regenerated chunk).
+
+Two more tables: the faiss codecs on the real scans (why fp16 codes), and
+exact against IVF search per suspect around :data:`IVF_MIN` (the threshold).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from pathlib import Path
+
+for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_v, "1")
+
+import numpy as np  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+DATA = Path(os.environ.get("POINTMARK_TEST_DATA", ROOT.parent / "shared" / "data")) / "models"
+OUT = ROOT / "bench" / "results"
+ROWS = 3000          # descriptors an asset
+CHUNK = 100          # assets generated and added at a time
+SUSPECTS = 3
+RECALL_QUERIES = 1000
+PROBES = (16, 32)     # cells searched per query: the default (features.IVF_PROBE) and twice that
+
+from pipeline import features  # noqa: E402
+
+
+def _pool():
+    """Real FPFH descriptor sets: the shared scans and procedural shapes at every query scale (cached)."""
+    cache = OUT / "index_scale_pool.npz"
+    if cache.is_file():
+        data = np.load(cache)
+        return [data[k] for k in sorted(data.files, key=int)]
+    from pipeline.demo import procedural_shape
+    from pipeline.io.pointcloud import read_points
+
+    clouds = [read_points(p).points for p in sorted(DATA.glob("*.ply"))]
+    clouds += [procedural_shape(kind, 20000, seed=s) for kind in ("blob", "torus", "terrain", "shell")
+               for s in range(6)]
+    sets = [features.describe(c, factor=f)[1] for c in clouds for f in features.QUERY_SCALES]
+    sets = [s for s in sets if len(s) >= 100]
+    OUT.mkdir(parents=True, exist_ok=True)
+    np.savez(cache, **{str(i): s for i, s in enumerate(sets)})
+    return sets
+
+
+def _fpfh_like(rows):
+    """(n, 33) float32: rows with three equal histogram sums, unit norm (as FPFH rows are)."""
+    blocks = rows.reshape(len(rows), 3, 11)
+    blocks = blocks / np.maximum(blocks.sum(axis=2, keepdims=True), 1e-12)
+    out = blocks.reshape(len(rows), 33)
+    return (out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)).astype(np.float32)
+
+
+def _noisy(source, n, sigma, gen):
+    rows = source[gen.integers(0, len(source), n)]
+    return _fpfh_like(rows * np.exp(gen.normal(0.0, sigma, rows.shape)))
+
+
+def _asset(pool, j):
+    """(ROWS, 33) float32, the descriptors of synthetic asset ``j``."""
+    return _noisy(pool[j % len(pool)], ROWS, 0.15, np.random.default_rng([38, j]))
+
+
+def _chunks(pool, n_assets):
+    for lo in range(0, n_assets, CHUNK):
+        ids = range(lo, min(lo + CHUNK, n_assets))
+        yield ids, [_asset(pool, j) for j in ids]
+
+
+def _suspects(pool, n_assets):
+    gen = np.random.default_rng([38, n_assets, 1])
+    return [[_noisy(pool[j % len(pool)], ROWS, 0.1, gen) for _ in features.QUERY_SCALES]
+            for j in gen.choice(n_assets, SUSPECTS, replace=False)]
+
+
+def _exact_top1(pool, n_assets, queries):
+    """Row and similarity of each query's exact nearest row, over every regenerated chunk."""
+    best = np.full(len(queries), -np.inf, dtype=np.float32)
+    row = np.zeros(len(queries), dtype=np.int64)
+    for ids, sets in _chunks(pool, n_assets):
+        top, sim = features.nearest_exact(queries, np.concatenate(sets), 1)
+        better = sim[:, 0] > best
+        best[better], row[better] = sim[better, 0], top[better, 0] + ids[0] * ROWS
+    return row
+
+
+def scale(pool, n_assets):
+    """Build, bytes, search and recall of the IVF index of ``n_assets`` synthetic assets."""
+    import faiss
+
+    n_rows = n_assets * ROWS
+    t0 = time.perf_counter()
+    gen = np.random.default_rng([38, n_assets])
+    cells = int(np.sqrt(n_rows))
+    picked = gen.choice(n_assets, min(n_assets, -(-cells * features.IVF_SAMPLE // ROWS)), replace=False)
+    ivf = features.train_ivf(np.concatenate([_asset(pool, j) for j in picked]), n_rows)
+    index = features.FeatureIndex([], None, np.zeros(0, dtype=np.int32), [], ivf=ivf)
+    trained = time.perf_counter() - t0
+    for ids, sets in _chunks(pool, n_assets):
+        index.add([f"a{j}" for j in ids], sets, ["h"] * len(ids))
+    built = time.perf_counter() - t0
+    size = faiss.serialize_index(ivf).nbytes + index.owner.nbytes
+    suspects = _suspects(pool, n_assets)
+    queries = np.concatenate([np.concatenate(s) for s in suspects])
+    queries = queries[np.random.default_rng(0).choice(len(queries), RECALL_QUERIES, replace=False)]
+    exact = _exact_top1(pool, n_assets, queries)
+    out = {"assets": n_assets, "rows": n_rows, "cells": ivf.nlist, "train_s": trained, "build_s": built,
+           "bytes": size}
+    for probe in PROBES:
+        t0 = time.perf_counter()
+        for suspect in suspects:
+            for feats in suspect:
+                index.votes(feats, probe=probe)
+        search = (time.perf_counter() - t0) / len(suspects)
+        found, _ = index.nearest(queries, 1, probe=probe)
+        out[probe] = {"search_s": search, "recall": float((found[:, 0] == exact).mean()),
+                      "asset_recall": float((found[:, 0] // ROWS == exact // ROWS).mean())}
+    return out
+
+
+def codecs():
+    """Exact-nearest-row recall and bytes a row of faiss codecs on the real scans (a kitten crop's rows)."""
+    import faiss
+
+    from pipeline import surface
+    from pipeline.io.pointcloud import read_points
+
+    rows = np.concatenate([features.describe(read_points(p).points)[1] for p in sorted(DATA.glob("*.ply"))])
+    kitten = read_points(DATA / "kitten_12623.ply").points
+    suspect = surface.apply_chain(kitten, [("crop", 0.5), ("random_similarity", None)], rng=5)
+    queries = np.concatenate([features.describe(suspect, factor=f)[1] for f in features.QUERY_SCALES])
+    exact, _ = features.nearest_exact(queries, rows, 1)
+    cells = int(np.sqrt(len(rows)))
+    out = []
+    for codec, dims in (("SQ8", 33), ("PQ11", 33), ("SQfp16", 33), ("SQ8", 32), ("SQfp16", 32)):
+        ivf = faiss.index_factory(dims, f"IVF{cells},{codec}", faiss.METRIC_INNER_PRODUCT)
+        ivf.cp.seed, ivf.cp.spherical = 0, True
+        x, q = (rows, queries) if dims == 33 else (features.fold_fpfh(rows), features.fold_queries(queries))
+        ivf.train(x)
+        ivf.add(x)
+        t0 = time.perf_counter()
+        _, top = ivf.search(q, 8, params=faiss.SearchParametersIVF(nprobe=features.IVF_PROBE))
+        out.append({"codec": codec, "dims": dims, "recall": float((top[:, 0] == exact[:, 0]).mean()),
+                    "code_bytes": ivf.code_size, "search_s_per_12000": (time.perf_counter() - t0)
+                    / len(q) * 12000})
+    return len(rows), len(queries), out
+
+
+def threshold(pool):
+    """Seconds per suspect (12,000 rows), exact and through the IVF, around IVF_MIN."""
+    out = []
+    queries = np.concatenate(_suspects(pool, 100)[0])
+    for n_assets in (10, 33, 66):
+        rows = np.concatenate([s for _, sets in _chunks(pool, n_assets) for s in sets])
+        exact = features.FeatureIndex([f"a{j}" for j in range(n_assets)], rows,
+                                      np.repeat(np.arange(n_assets, dtype=np.int32), ROWS), ["h"] * n_assets)
+        ivf = exact.with_ivf()
+        times = []
+        for index, part in ((exact, queries[::10]), (ivf, queries)):
+            t0 = time.perf_counter()
+            index.votes(part)
+            times.append((time.perf_counter() - t0) / len(part) * len(queries))
+        out.append({"rows": len(rows), "exact_s": times[0], "ivf_s": times[1]})
+    return out
+
+
+def main(sizes):
+    pool = _pool()
+    lines = ["# Catalogue index at scale (bench/index_scale.py)", "",
+             f"One thread, {time.strftime('%Y-%m-%d')}; faiss IVF (fp16 residual codes, 32 folded dims, about "
+             f"sqrt(N) cells, {features.IVF_PROBE} probed unless said); {ROWS:,} descriptors an asset; synthetic "
+             f"assets from {len(pool)} real FPFH sets.", ""]
+    n_rows, n_queries, rows = codecs()
+    lines += [f"## Codecs on the real scans ({n_rows:,} rows, {n_queries:,} queries of a kitten crop)", "",
+              "| codec | dims | exact nearest row found | code bytes | s per 12,000 queries |", "|---|---:|---:|---:|---:|"]
+    lines += [f"| {r['codec']} | {r['dims']} | {r['recall']:.2%} | {r['code_bytes']} | {r['search_s_per_12000']:.2f} |"
+              for r in rows]
+    print("\n".join(lines), flush=True)
+    lines += ["", "## Exact against IVF, seconds per suspect (12,000 descriptors)", "",
+              "| rows | exact s | IVF s |", "|---:|---:|---:|"]
+    print("\n".join(lines[-4:]), flush=True)
+    for r in threshold(pool):
+        lines.append(f"| {r['rows']:,} | {r['exact_s']:.1f} | {r['ivf_s']:.2f} |")
+        print(lines[-1], flush=True)
+    lines += ["", "## IVF at scale (search, recall@1 and same asset@1 at 16 / 32 cells probed)", "",
+              "| assets | rows | cells | train s | build s | index bytes | bytes a row | search s per suspect "
+              "| recall@1 | same asset@1 |", "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for n in sizes:
+        r = scale(pool, n)
+
+        def both(key, fmt):
+            return " / ".join(format(r[p][key], fmt) for p in PROBES)
+
+        lines.append(f"| {r['assets']:,} | {r['rows']:,} | {r['cells']:,} | {r['train_s']:.1f} | {r['build_s']:.1f} "
+                     f"| {r['bytes']:,} | {r['bytes'] / r['rows']:.1f} | {both('search_s', '.2f')} "
+                     f"| {both('recall', '.2%')} | {both('asset_recall', '.2%')} |")
+        print(lines[-1], flush=True)
+        (OUT / "index_scale.md").write_text("\n".join(lines) + "\n")
+    (OUT / "index_scale.md").write_text("\n".join(lines) + "\n")
+
+
+if __name__ == "__main__":
+    main([int(a) for a in sys.argv[1:]] or [100, 1000, 10000])
