@@ -276,7 +276,7 @@ SCAN = _section("Leak-detection scans (pointmark scan).", {
                      "quick ones) when its share of the suspect's descriptor votes, less its background share, "
                      "reaches this, or when its shape distance is within deep_shape.  0.03 and 0.05 lose no "
                      "leak of the leak benchmark's 217 (the nearest at 0.042 votes, 0.043 shape) and spare "
-                     "innocents about a third of their deep checks.  null: every candidate may.",
+                     "innocents a quarter to a third of their deep checks.  null: every candidate may.",
                      minimum=-1, maximum=1),
     "deep_shape": _p(("number", "null"), 0.05,
                      "The scan's cascade: shape-distribution distance (the nearest of the suspect's views, "
