@@ -12,6 +12,19 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
+# The files whose tests take longest, longest first (`--durations`, 2026-12-02).  `make test` hands
+# whole files to two processes in collection order (`--dist loadfile --no-loadscope-reorder`): these
+# start first, so that neither process is left running one of them alone at the end.
+HEAVY_FIRST = ("test_scan.py", "test_features.py", "test_robustness.py", "orchestrate/test_scan_hostile.py",
+               "test_robustness_part.py", "orchestrate/test_scan_verdicts.py", "test_bunny.py",
+               "orchestrate/test_run.py", "test_cli.py", "orchestrate/test_detect.py")
+
+
+def pytest_collection_modifyitems(items):
+    rank = {f"tests/{name}": i for i, name in enumerate(HEAVY_FIRST)}
+    items.sort(key=lambda item: rank.get(item.nodeid.split("::")[0], len(HEAVY_FIRST)))   # stable
+
+
 def data_dir():
     """The real-scan folder: $POINTMARK_TEST_DATA or ../shared/data."""
     return Path(os.environ.get("POINTMARK_TEST_DATA", ROOT.parent / "shared" / "data"))

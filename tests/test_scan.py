@@ -77,12 +77,23 @@ def scanned(tmp_path_factory):
             continue
         pts = attacks.apply_chain(read_points(marked).points, chain + [("shuffle", None)], rng)
         write_array(tmp / "suspects", name, pts, "ply")
-    write_array(tmp / "suspects", "unrelated", procedural_shape("shell", 5000, seed=99) * 20, "ply")
+    write_array(tmp / "suspects", "unrelated", _box(5000, np.random.default_rng(99)) * 20, "ply")
     write_array(tmp / "suspects", "unmarked", read_points(tmp / "assets" / "asset-5.ply").points[::-1], "ply")
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     res = subprocess.run([sys.executable, "-m", "pipeline.cli", "scan", str(tmp / "scan.yaml")], cwd=tmp,
                          env=env, capture_output=True, text=True, timeout=900)
     return tmp, res, env
+
+
+def _box(n, gen, sides=(3.0, 2.0, 1.0)):
+    """(n, 3) points on the surface of a box: a shape none of the catalogue's kinds resembles."""
+    sides = np.asarray(sides)
+    area = np.repeat([sides[1] * sides[2], sides[0] * sides[2], sides[0] * sides[1]], 2)
+    face = gen.choice(6, n, p=area / area.sum())
+    pts = (gen.random((n, 3)) - 0.5) * sides
+    axis = face // 2
+    pts[np.arange(n), axis] = np.where(face % 2, 0.5, -0.5) * sides[axis]
+    return pts
 
 
 def _best(tmp):
@@ -113,6 +124,12 @@ def test_attacked_copies_are_attributed_to_asset_and_recipient(scanned, name):
 def test_unrelated_and_unmarked_are_no_match(scanned, name):
     tmp, _, _ = scanned
     assert _best(tmp)[name]["verdict"] == "no match"
+
+
+def test_the_cascade_stops_candidates_of_an_unrelated_shape_before_the_deep_steps(scanned):
+    # at the default gates: a box is like none of the catalogue in descriptors or in shape
+    row = _best(scanned[0])["unrelated"]
+    assert row["n_stopped"] >= 1 and "stopped by the cascade" in row["note"]
 
 
 def test_a_second_scan_skips_suspects_already_scanned(scanned):
