@@ -13,6 +13,7 @@ prints every suspect whose verdict, asset or recipient differs, and the counts.
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import sys
 import time
@@ -56,8 +57,8 @@ def scan(name, subset="suspects"):
     from pipeline.orchestrate.scan import run_scan
 
     cfg = leaks._config(WORK, WORK / "manifests", WORK / "marked", "bench")
-    cfg["dask"]["n_workers"] = int(__import__("os").environ.get("RESCAN_WORKERS", "1"))
-    for item in filter(None, __import__("os").environ.get("RESCAN_SCAN_SETS", "").split(",")):
+    cfg["dask"]["n_workers"] = int(os.environ.get("RESCAN_WORKERS", "1"))
+    for item in filter(None, os.environ.get("RESCAN_SCAN_SETS", "").split(",")):
         key, value = item.split("=")              # e.g. RESCAN_SCAN_SETS=deep_votes=0.05,quick_shape=0.12
         cfg["scan"][key] = None if value == "null" else float(value)
     cfg["scan"]["suspects"], cfg["scan"]["out"] = str(WORK / "compare" / subset), str(WORK / "compare" / name)
