@@ -150,24 +150,24 @@ def test_an_exact_resave_ranks_first_by_its_hash(models, index):
 def test_an_index_extended_with_more_assets_votes_as_one_built_from_all_of_them(models):
     # four of the smaller scans (each is described two or three times here)
     first, rest = ["fertility_4494", "spot_cow_2930"], ["fandisk_cad_6475", "nikolov_birdbath_18793"]
-    index = features.build_index({k: models[k] for k in first + rest})
+    whole = features.build_index({k: models[k] for k in first + rest})
     grown = features.build_index({k: models[k] for k in first})
     trained = grown.with_ivf()
     grown.extend({k: models[k] for k in rest})
-    assert grown.keys == index.keys and grown.hashes == index.hashes and grown.ivf is None
+    assert grown.keys == whole.keys and grown.hashes == whole.hashes and grown.ivf is None
     for name in ("features", "owner", "prior", "shapes", "shape_owner"):
-        assert np.array_equal(getattr(grown, name), getattr(index, name)), name
+        assert np.array_equal(getattr(grown, name), getattr(whole, name)), name
     suspect = surface.apply_chain(models["nikolov_birdbath_18793"], [("crop", 0.5), ("random_similarity", None)],
                                   rng=4)
     _, feats = features.describe(suspect)
-    assert np.array_equal(grown.votes(feats), index.votes(feats))
+    assert np.array_equal(grown.votes(feats), whole.votes(feats))
     # an IVF grows without retraining its cells, and ranks the new assets' suspects as the exact index does
     centroids = trained.ivf.quantizer.reconstruct_n(0, trained.ivf.nlist)
     trained.extend({k: models[k] for k in rest})
     assert np.array_equal(trained.ivf.quantizer.reconstruct_n(0, trained.ivf.nlist), centroids)
-    assert trained.ivf.ntotal == len(index.owner) and np.array_equal(trained.owner, index.owner)
-    assert trained.keys == index.keys and trained.features is None
-    assert [k for k, _ in trained.rank(suspect, top_k=3)] == [k for k, _ in index.rank(suspect, top_k=3)]
+    assert trained.ivf.ntotal == len(whole.owner) and np.array_equal(trained.owner, whole.owner)
+    assert trained.keys == whole.keys and trained.features is None
+    assert [k for k, _ in trained.rank(suspect, top_k=3)] == [k for k, _ in whole.rank(suspect, top_k=3)]
     with pytest.raises(ValueError, match="already indexed"):
         trained.extend({first[0]: models[first[0]]})
 

@@ -77,23 +77,12 @@ def scanned(tmp_path_factory):
             continue
         pts = attacks.apply_chain(read_points(marked).points, chain + [("shuffle", None)], rng)
         write_array(tmp / "suspects", name, pts, "ply")
-    write_array(tmp / "suspects", "unrelated", _box(5000, np.random.default_rng(99)) * 20, "ply")
+    write_array(tmp / "suspects", "unrelated", attacks.box(np.random.default_rng(99), 5000, sides=(3.0, 2.0, 1.0)) * 20, "ply")
     write_array(tmp / "suspects", "unmarked", read_points(tmp / "assets" / "asset-5.ply").points[::-1], "ply")
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     res = subprocess.run([sys.executable, "-m", "pipeline.cli", "scan", str(tmp / "scan.yaml")], cwd=tmp,
                          env=env, capture_output=True, text=True, timeout=900)
     return tmp, res, env
-
-
-def _box(n, gen, sides=(3.0, 2.0, 1.0)):
-    """(n, 3) points on the surface of a box: a shape none of the catalogue's kinds resembles."""
-    sides = np.asarray(sides)
-    area = np.repeat([sides[1] * sides[2], sides[0] * sides[2], sides[0] * sides[1]], 2)
-    face = gen.choice(6, n, p=area / area.sum())
-    pts = (gen.random((n, 3)) - 0.5) * sides
-    axis = face // 2
-    pts[np.arange(n), axis] = np.where(face % 2, 0.5, -0.5) * sides[axis]
-    return pts
 
 
 def _best(tmp):

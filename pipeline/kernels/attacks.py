@@ -209,8 +209,12 @@ def _blob(rng, n):
     return v * r[:, None] * rng.uniform(0.5, 1.0, 3)
 
 
-def _box(rng, n):
-    sides = rng.uniform(0.4, 1.0, 3)
+def box(rng, n, sides=None):
+    """(n, 3) points on the surface of a centred box, its six faces equally likely.
+
+    ``sides`` (3,) default to seeded draws in [0.4, 1) (the clutter's boxes).
+    """
+    sides = rng.uniform(0.4, 1.0, 3) if sides is None else np.asarray(sides, dtype=np.float64)
     face = rng.integers(0, 6, n)
     p = rng.uniform(-0.5, 0.5, (n, 3))
     p[np.arange(n), face % 3] = np.where(face < 3, -0.5, 0.5)
@@ -238,7 +242,7 @@ def clutter(points, factor, rng=None, *, n_objects=4):
     (about (1 + factor) * n, 3) float, the asset's points first
     """
     rng = np.random.default_rng(rng)
-    makers = [_blob, _box, _cylinder]
+    makers = [_blob, box, _cylinder]
     share = max(int(round(factor * len(points) / n_objects)), 10)
     others = [makers[i % 3](rng, share) for i in range(n_objects)]
     return scene(points, others, factor, rng)
