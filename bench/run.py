@@ -1,4 +1,4 @@
-"""pointmark benchmarks: ``make bench`` (or ``python bench/run.py [spectral] [catalog] [scan] [fingerprint] [issue] [cli] [leaks] [leaks-resample] [leaks-resample-check] [leaks-trim] [leaks-parts] [leaks-rescan] [leaks-candidates] [leaks-poses] [leaks-negatives] [tile]``).
+"""pointmark benchmarks: ``make bench`` (or ``python bench/run.py [spectral] [catalog] [scan] [fingerprint] [issue] [cli] [leaks] [leaks-resample] [leaks-resample-check] [leaks-trim] [leaks-parts] [leaks-rescan] [leaks-candidates] [leaks-poses] [leaks-negatives] [tile] [gltf] [fingerprint-crops]``).
 
 Every figure is a ratio of two timings taken side by side in this one run,
 since shared machines are noisy; each timing is the best of a few repeats.
@@ -331,6 +331,14 @@ def gltf_bench():
     run(ROOT / "bench" / "results" / "gltf")
 
 
+def crops_bench():
+    """Fingerprints in 10 % crops at the paper's distance, clusters from seeds or covering (issue 39; ~40 min)."""
+    sys.path.insert(0, str(ROOT / "bench"))
+    from crops import crops_bench as run
+
+    run()
+
+
 def tile_bench():
     """Embedding 1- and 10-million-point LAZ tiles (issue 15; about 45 minutes): see bench/tile.py."""
     sys.path.insert(0, str(ROOT / "bench"))
@@ -344,7 +352,8 @@ BENCHES = {"spectral": spectral_bench, "catalog": catalog_bench, "scan": scan_be
            "tile": tile_bench, "leaks-resample": resample_bench, "leaks-resample-check": resample_check,
            "leaks-trim": trim_bench, "leaks-parts": parts_bench, "leaks-rescan": rescan_bench,
            "leaks-candidates": candidates_bench, "leaks-poses": poses_bench,
-           "leaks-negatives": negatives_bench, "gltf": gltf_bench}
+           "leaks-negatives": negatives_bench, "gltf": gltf_bench,
+           "fingerprint-crops": crops_bench}
 DEFAULT = ["spectral", "catalog", "scan", "fingerprint", "issue", "cli"]   # the others run when named
 
 
