@@ -1,6 +1,6 @@
 """Fingerprints in 10 % crops at the paper's distance, with and without clusters covering the asset (issue 39).
 
-``python bench/run.py fingerprint-crops`` (about 40 minutes on one core).  For
+``python bench/run.py fingerprint-crops`` (about 20 minutes on one core).  For
 each scan of at least 15,000 points below, two embeddings at the same
 distance to the surface:
 
@@ -13,7 +13,9 @@ A copy to one of 1,000 recipients is cropped to 10 % of its points by a plane
 at 10 random directions (seeds 0-9), rotated, rescaled and shuffled, and
 attributed with the default detection (``evaluate.fingerprint_trial``).
 Rows go to ``bench/results/crops/rows.jsonl`` (resumable); the summary is
-printed and written to ``summary.md`` there.
+printed and written to ``summary.md`` there.  ``python bench/crops.py 0.05 0.02``
+crops to those fractions instead (the smallest piece that still names its
+recipient).
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ WORK = ROOT / "bench" / "results" / "crops"
 MODELS = ["bunny_zipper_faceref_34834", "bunny_rangescan_bun000_40256", "nikolov_birdbath_18793"]
 SEEDS = range(10)
 RECIPIENTS = 1000
-CHAIN = "crop:0.1+random_similarity"
+FRACTION = 0.1
 SECRET = b"fingerprint-crops-bench-secret-01"
 
 
@@ -62,7 +64,7 @@ def _configs(points, default, material):
     return {"seeds": (default, seeds_mrms, seeds_cov), "cover": (cover, mrms, cov)}
 
 
-def crops_bench():
+def crops_bench(fractions=(FRACTION,)):
     from pipeline import config
     from pipeline.io.pointcloud import read_points
     from pipeline.kernels import keys
@@ -70,7 +72,7 @@ def crops_bench():
 
     WORK.mkdir(parents=True, exist_ok=True)
     rows_path = WORK / "rows.jsonl"
-    done = {(r["model"], r["config"], r["seed"]) for r in map(json.loads, rows_path.open())} \
+    done = {(r["model"], r["config"], _fraction(r), r["seed"]) for r in map(json.loads, rows_path.open())} \
         if rows_path.exists() else set()
     cfg = config.load_config(None)
     default, detect = config.watermark_params(cfg), config.detect_params(cfg)
@@ -83,38 +85,51 @@ def crops_bench():
                   f"{100 * covered:.0f} % of the points in a cluster", flush=True)
             handle = evaluate.prepare_bases(path, evaluate._basis_params(params, params.n_coefficients),
                                             WORK / "bases")
-            for seed in SEEDS:
-                if (model, name, seed) in done:
-                    continue
-                row = evaluate.fingerprint_trial(path, handle, params, detect, CHAIN, "single", seed, material,
-                                                 RECIPIENTS)
-                row.update(config=name, beta=params.beta, mrms_rel_diag=mrms, covered=covered)
-                with rows_path.open("a") as f:
-                    f.write(json.dumps(row) + "\n")
-                print(f"  seed {seed}: leaker score {row['min_colluder_score']:.2f} (threshold "
-                      f"{row['threshold']:.2f}), innocents accused {row['accused_innocents']}, "
-                      f"{row['seconds_detect']:.0f} s", flush=True)
+            for fraction in fractions:
+                for seed in SEEDS:
+                    if (model, name, fraction, seed) in done:
+                        continue
+                    row = evaluate.fingerprint_trial(path, handle, params, detect,
+                                                     f"crop:{fraction}+random_similarity", "single", seed,
+                                                     material, RECIPIENTS)
+                    row.update(config=name, beta=params.beta, mrms_rel_diag=mrms, covered=covered,
+                               fraction=fraction)
+                    with rows_path.open("a") as f:
+                        f.write(json.dumps(row) + "\n")
+                    print(f"  crop {fraction}, seed {seed}: leaker score {row['min_colluder_score']:.2f} "
+                          f"(threshold {row['threshold']:.2f}), innocents accused {row['accused_innocents']}, "
+                          f"{row['seconds_detect']:.0f} s", flush=True)
     summary()
+
+
+def _fraction(row):
+    return row.get("fraction", FRACTION)       # rows written before fractions were recorded: 10 % crops
 
 
 def summary():
     rows = [json.loads(line) for line in (WORK / "rows.jsonl").open()]
-    lines = ["| model | config | beta | MRMS % diag | points in a cluster | leaker named | leaker scores (min, median) "
-             "| threshold | innocents accused |", "|---|---|---:|---:|---:|---:|---|---:|---:|"]
+    lines = ["| model | config | beta | MRMS % diag | points in a cluster | crop | leaker named "
+             "| leaker scores (min, median) | threshold | innocents accused |",
+             "|---|---|---:|---:|---:|---:|---:|---|---:|---:|"]
     for model in MODELS:
         for name in ("seeds", "cover"):
-            sub = [r for r in rows if r["model"] == model and r["config"] == name]
-            if not sub:
-                continue
-            s = np.array([r["min_colluder_score"] for r in sub])
-            named = sum(r["accused_colluders"] == 1 for r in sub)
-            lines.append(f"| {model} | {name} | {sub[0]['beta']:.6f} | {100 * sub[0]['mrms_rel_diag']:.4f} | "
-                         f"{100 * sub[0]['covered']:.0f} % | {named}/{len(sub)} | {s.min():.2f}, {np.median(s):.2f} | "
-                         f"{sub[0]['threshold']:.2f} | {sum(r['accused_innocents'] for r in sub)} |")
+            for fraction in sorted({_fraction(r) for r in rows}, reverse=True):
+                sub = [r for r in rows if r["model"] == model and r["config"] == name and _fraction(r) == fraction]
+                if not sub:
+                    continue
+                s = np.array([r["min_colluder_score"] for r in sub])
+                named = sum(r["accused_colluders"] == 1 for r in sub)
+                lines.append(f"| {model} | {name} | {sub[0]['beta']:.6f} | {100 * sub[0]['mrms_rel_diag']:.4f} | "
+                             f"{100 * sub[0]['covered']:.0f} % | {100 * fraction:g} % | {named}/{len(sub)} | "
+                             f"{s.min():.2f}, {np.median(s):.2f} | {sub[0]['threshold']:.2f} | "
+                             f"{sum(r['accused_innocents'] for r in sub)} |")
     text = "\n".join(lines)
     (WORK / "summary.md").write_text(text + "\n")
     print(text)
 
 
 if __name__ == "__main__":
-    summary() if sys.argv[1:] == ["summary"] else crops_bench()
+    if sys.argv[1:] == ["summary"]:
+        summary()
+    else:
+        crops_bench(tuple(float(a) for a in sys.argv[1:]) or (FRACTION,))

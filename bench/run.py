@@ -332,7 +332,7 @@ def gltf_bench():
 
 
 def crops_bench():
-    """Fingerprints in 10 % crops at the paper's distance, clusters from seeds or covering (issue 39; ~40 min)."""
+    """Fingerprints in 10 % crops at the paper's distance, clusters from seeds or covering (issue 39; ~20 min)."""
     sys.path.insert(0, str(ROOT / "bench"))
     from crops import crops_bench as run
 
