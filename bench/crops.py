@@ -31,7 +31,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("POINTMARK_TEST_DATA", ROOT.parent / "shared" / "data"))
 WORK = ROOT / "bench" / "results" / "crops"
-MODELS = ["bunny_zipper_faceref_34834", "bunny_rangescan_bun000_40256", "nikolov_birdbath_18793"]
+MODELS = ["bunny_zipper_faceref_34834", "bunny_rangescan_bun000_40256", "nikolov_birdbath_18793",
+          "nikolov_blackvase_17337"]          # every scan of at least 15,000 points but the LiDAR tile
 SEEDS = range(10)
 RECIPIENTS = 1000
 FRACTION = 0.1
