@@ -173,7 +173,7 @@ def test_shipped_catalogue_configs_mark_at_the_papers_distance_to_the_surface(na
         ours, theirs = (distortion(points, embed_reference(points, reference, material, bits, p))["mrms_rel_diag"]
                         for p in (params, paper))
         ratios.append(ours / theirs)
-    # measured on the eight demo assets that are no survey tile: 0.985 to 1.007 of the paper's MRMS, whose
-    # own copies of one asset spread by 2 % between recipients (0.002 along the normals, the demo's
-    # before, was 1.73; docs/evaluation.md)
+    # measured on the eight demo assets that are no survey tile: 0.985 to 1.007 of the paper's MRMS,
+    # whose own copies of one asset spread by up to 4 % between recipients (0.002 along the normals,
+    # the demo's before, was 1.73; docs/evaluation.md)
     assert 0.9 < np.mean(ratios) <= 1.03, ratios

@@ -79,7 +79,8 @@ def scanned(tmp_path_factory):
             continue
         pts = attacks.apply_chain(read_points(marked).points, chain + [("shuffle", None)], rng)
         write_array(tmp / "suspects", name, pts, "ply")
-    write_array(tmp / "suspects", "unrelated", attacks.box(np.random.default_rng(99), 5000, sides=(3.0, 2.0, 1.0)) * 20, "ply")
+    box = attacks.box(np.random.default_rng(99), 5000, sides=(3.0, 2.0, 1.0))   # like no catalogue shape
+    write_array(tmp / "suspects", "unrelated", box * 20, "ply")
     write_array(tmp / "suspects", "unmarked", read_points(tmp / "assets" / "asset-5.ply").points[::-1], "ply")
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     res = subprocess.run([sys.executable, "-m", "pipeline.cli", "scan", str(tmp / "scan.yaml")], cwd=tmp,
