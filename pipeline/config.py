@@ -86,14 +86,22 @@ WATERMARK = _section("Embedding parameters (paper, section 2.2).", {
                "in xyz).", exclusiveMinimum=0, maximum=0.1),
     "valence": _p("number", 12, "Average valence N_n of the radius mesh.", exclusiveMinimum=0,
                   maximum=200),
-    "n_clusters": _p("integer", 5, "Number of clusters (ignored with cover).", minimum=1,
+    "n_clusters": _p("integer", 5, "Number of clusters grown from seeds; with cover, the clusters whose "
+                     "distortion budget the covering clusters share (cover_amplitude).", minimum=1,
                      maximum=100_000),
     "cluster_size": _p("integer", 4000, "Size limit of each cluster.", minimum=16,
                        maximum=10_000_000),
     "seeds": _SEEDS,
     "on_touch": _p(["stop", "skip"], "skip",
                    "A growing cluster that meets another: stop (the paper's rule) or pass around it."),
-    "cover": _p("boolean", False, "Cover the whole model with clusters of cluster_size."),
+    "cover": _p("boolean", True, "Cover the whole model with clusters of cluster_size, so a crop anywhere keeps "
+                "whole clusters (at the paper's distance to the surface: cover_amplitude); false grows only "
+                "n_clusters clusters from seeds (the paper)."),
+    "cover_amplitude": _p(["paper", "full"], "paper",
+                          "With cover on a model-amplitude asset (no tile_points): paper scales every "
+                          "cluster's alpha by sqrt(min(1, n_clusters x cluster_size / points)), so the copy "
+                          "keeps the distance to the surface of the paper's n_clusters clusters; full keeps "
+                          "alpha in every cluster (more robust, farther from the surface)."),
     "chip_layout": _p(["consecutive", "interleaved"], "interleaved",
                       "Chips of a bit on consecutive coefficients (paper) or spread by the key."),
     "first_coefficient": _p("integer", 0, "Index of the first modulated coefficient.", minimum=0,
@@ -665,6 +673,7 @@ class WatermarkParams:
     seeds: tuple | None = _W["seeds"]           # seed indices, or seed coordinates ((x, y, z), ...)
     on_touch: str = _W["on_touch"]              # "stop" (the paper's literal rule) or "skip"
     cover: bool = _W["cover"]                   # grow clusters over the whole model
+    cover_amplitude: str = _W["cover_amplitude"]  # "paper": covering clusters share n_clusters' budget
     chip_layout: str = _W["chip_layout"]        # "consecutive" (paper) or "interleaved"
     first_coefficient: int = _W["first_coefficient"]
     crc_bits: int = _W["crc_bits"]              # 0 (paper), 8 or 16
@@ -678,6 +687,12 @@ class WatermarkParams:
         if self.amplitude == "auto" or self.max_displacement == "auto":
             raise ValueError("WatermarkParams: amplitude and max_displacement must be resolved "
                              "(config.watermark_params resolves auto for an asset)")
+
+    @property
+    def shares_budget(self):
+        """Clusters covering a model-amplitude asset that spend the paper's budget (``cover_amplitude``)."""
+        return (self.cover and self.cover_amplitude == "paper" and self.tile_points is None
+                and self.amplitude == "model")
 
     @property
     def total_bits(self):

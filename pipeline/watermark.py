@@ -25,7 +25,7 @@ __all__ = [
     "cluster_basis", "cluster_normals", "modulate_cluster", "embed", "embed_with_bases", "detect",
     "detect_with_bases", "estimate_differences", "register", "Undecided", "decode", "distortion", "WatermarkError",
     "Reference", "compute_reference", "embed_reference", "detect_reference", "fingerprint_length",
-    "fingerprint_displacement", "cluster_amplitude",
+    "fingerprint_displacement", "cluster_amplitude", "budget_share",
     "capped", "mark_reach", "cluster_fingerprint", "check_count", "check_digest",
     "fingerprint_observation", "ReferenceMismatch", "params_record", "params_from_record", "ADDED_LATER",
 ]
@@ -194,11 +194,11 @@ def fingerprint_displacement(reference, chips, params, points=None):
     count = 3 * params.total_bits * params.chip_rate
     return [cluster_fingerprint(basis, None if reference.normals is None else reference.normals[c],
                                 chips[c * count:(c + 1) * count], reference.phi,
-                                None if points is None else points[spec.members], params)
+                                None if points is None else points[spec.members], params, len(reference.specs))
             for c, (spec, basis) in enumerate(zip(reference.specs, reference.bases))]
 
 
-def cluster_fingerprint(basis, normals, chips, phi, cluster_points, params):
+def cluster_fingerprint(basis, normals, chips, phi, cluster_points, params, n_planned):
     """Displacement of one cluster's points for its share of a fingerprint.
 
     Parameters
@@ -209,13 +209,14 @@ def cluster_fingerprint(basis, normals, chips, phi, cluster_points, params):
     phi : float, largest bbox side of the whole model
     cluster_points : (n_c, 3) float or None (needed with ``amplitude == "cluster"``)
     params : WatermarkParams
+    n_planned : int, clusters planned on the whole model (see :func:`budget_share`)
 
     Returns
     -------
     (n_c, 3) float
     """
     count = params.total_bits * params.chip_rate
-    amplitude = cluster_amplitude(params, phi, cluster_points)
+    amplitude = cluster_amplitude(params, phi, cluster_points, n_planned)
     x = np.asarray(chips).reshape(3, count)
     moved = basis[:, params.first_coefficient:params.first_coefficient + count] @ (amplitude * x.T)
     if params.displacement == "normal":
@@ -478,15 +479,15 @@ def embed_with_bases(centred, specs, bases, material, message_bits, params, phi,
     bits = payload_bits(message_bits, params)
     moved = centred.copy()
     for i, (spec, basis) in enumerate(zip(specs, bases)):
-        alpha = cluster_amplitude(params, phi, centred[spec.members])
+        alpha = cluster_amplitude(params, phi, centred[spec.members], len(specs))
         along = normals[i] if normals is not None else cluster_normals(centred, spec.members, params)
         moved[spec.members] += capped(modulate_cluster(basis, spec.index, material, bits, alpha, params, along),
                                       params)
     return moved
 
 
-def cluster_amplitude(params, phi, cluster_points):
-    """alpha = beta * phi of one cluster.
+def cluster_amplitude(params, phi, cluster_points, n_planned):
+    """alpha = beta * phi of one cluster, times :func:`budget_share`.
 
     Parameters
     ----------
@@ -497,6 +498,8 @@ def cluster_amplitude(params, phi, cluster_points):
         Used when ``params.amplitude == "cluster"``: phi is then the
         cluster's own largest bbox side, so a cluster of a 1 km tile moves
         by its local extent, not the tile's.
+    n_planned : int
+        Clusters planned on the whole model.
 
     Returns
     -------
@@ -504,7 +507,22 @@ def cluster_amplitude(params, phi, cluster_points):
     """
     if params.amplitude == "cluster":
         return params.beta * float(np.ptp(cluster_points, axis=0).max()) if len(cluster_points) else 0.0
-    return params.beta * phi
+    return params.beta * phi * budget_share(params, n_planned)
+
+
+def budget_share(params, n_planned):
+    """Factor on alpha of clusters that cover a model on the paper's distortion budget.
+
+    A cluster's displacement has energy alpha^2 x its modulated chips
+    whatever its size (the basis is orthonormal), so ``n_planned`` clusters
+    at alpha * sqrt(n_clusters / n_planned) move the model by the root mean
+    square of the paper's ``n_clusters``: the copy keeps the paper's distance
+    to the surface (``params.shares_budget``).  1.0 otherwise.
+    """
+    if not params.shares_budget:
+        return 1.0
+    n_seeds = params.n_clusters if params.seeds is None else len(params.seeds)
+    return float(np.sqrt(min(1.0, n_seeds / max(int(n_planned), 1))))
 
 
 def capped(moved, params):
@@ -889,20 +907,28 @@ def mark_reach(params, reference, specs, bases):
     used = slice(params.first_coefficient, params.first_coefficient + params.total_bits * params.chip_rate)
     reach = np.zeros(len(reference))
     for s, e in zip(specs, bases):
-        reach[s.members] = modulation.spread_reach(e[:, used], cluster_amplitude(params, phi, reference[s.members]))
+        alpha = cluster_amplitude(params, phi, reference[s.members], len(specs))
+        reach[s.members] = modulation.spread_reach(e[:, used], alpha)
     if params.max_displacement is not None:
         reach = np.minimum(reach, 2.0 * params.max_displacement)
     return reach
 
 
 def params_record(params):
-    """Plain-dict view of parameters for manifests and JSON."""
-    return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(params).items()}
+    """Plain-dict view of parameters for manifests and JSON.
+
+    ``cover_amplitude`` is recorded as it acted: "full" wherever no budget is
+    shared (records written before the key meant that).
+    """
+    record = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(params).items()}
+    record["cover_amplitude"] = "paper" if params.shares_budget else "full"
+    return record
 
 
 # parameters added after records began, with what a record written before them meant (never the
 # current default: an old row keeps the parameters it was issued under)
-ADDED_LATER = {"amplitude": "model", "max_displacement": None, "tile_points": None, "code": "repetition"}
+ADDED_LATER = {"amplitude": "model", "max_displacement": None, "tile_points": None, "code": "repetition",
+               "cover_amplitude": "full"}
 
 
 def params_from_record(record):

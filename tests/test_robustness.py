@@ -5,8 +5,8 @@ code behind the report's rows): embed with the default config (the paper's
 c 10 and 32 bits, interleaved chips, displacement along the normals at beta
 0.002 / sqrt(3), so at the paper's distance to the surface, and the
 convolutional payload code), attack, shuffle, detect with the robust method.
-Every model has the paper's 5 clusters: of 4,000 points on the bunny, of
-2,400 on the 12,000-point scans.
+Clusters cover every model (the default): 9 of 4,000 points on the bunny, 6 of
+2,400 on the 12,000-point scans, at the root mean square of the paper's 5.
 """
 
 from dataclasses import replace

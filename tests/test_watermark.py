@@ -11,8 +11,8 @@ from pipeline.config import DetectParams, WatermarkParams
 
 MATERIAL = keys.derive_key_material(b"amplitude-test-secret-0123456789", "tile")
 BITS = modulation.hex_to_bits("C0FFEE42", 32)
-PARAMS = WatermarkParams(cluster_size=1000, cover=True, displacement="normal", chip_layout="interleaved", beta=0.002,
-                         code="repetition")
+PARAMS = WatermarkParams(cluster_size=1000, cover=True, cover_amplitude="full", displacement="normal",
+                         chip_layout="interleaved", beta=0.002, code="repetition")   # alpha in every cluster
 IN_PLACE = DetectParams(registration="none")     # a crop of a survey tile keeps its coordinates
 
 
@@ -127,3 +127,24 @@ def test_no_point_moves_beyond_the_reach_detection_keeps(tile, reference, cap):
     assert (reach[~inside] == 0).all() and (reach[inside] > 0).all()
     assert (distance <= reach).all()
     assert distance.max() > 0.2 * reach[inside].max()      # the reach is not vacuous
+
+
+def test_covering_clusters_move_the_model_as_far_as_the_papers_clusters(reference):
+    """cover_amplitude "paper": clusters covering the tile, at the root mean square motion of 5 from seeds."""
+    frame, centred, specs, bases = reference
+    shared = replace(PARAMS, cover_amplitude="paper")
+    seeds = replace(PARAMS, cover=False)
+    seeds_specs = watermark.plan_clusters(centred, seeds)
+    seeds_bases = [watermark.cluster_basis(centred[s.members], seeds)[1] for s in seeds_specs]
+    assert len(specs) > len(seeds_specs) == seeds.n_clusters
+    assert watermark.budget_share(shared, len(specs)) == pytest.approx(np.sqrt(5 / len(specs)))
+
+    def rms(params, specs, bases):
+        moved = watermark.embed_with_bases(centred, specs, bases, MATERIAL, BITS, params, frame.phi)
+        return float(np.sqrt(((moved - centred) ** 2).sum(axis=1).mean()))
+
+    paper = rms(seeds, seeds_specs, seeds_bases)
+    assert rms(shared, specs, bases) == pytest.approx(paper, rel=0.03)
+    assert rms(PARAMS, specs, bases) > 1.2 * paper          # alpha in every cluster: farther from the surface
+    assert watermark.params_record(shared)["cover_amplitude"] == "paper"
+    assert watermark.params_record(replace(shared, tile_points=4000))["cover_amplitude"] == "full"   # as it acts

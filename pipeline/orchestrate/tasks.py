@@ -196,7 +196,7 @@ def _marked_copies(points, centre, phi, specs, chips, params, plan, recorded, ne
 
     def moved(spec, basis, normals, x):
         return cluster_fingerprint(basis, normals, x[spec.index * count:(spec.index + 1) * count], phi,
-                                   points[spec.members], params)
+                                   points[spec.members], params, len(specs))
 
     if len(chips) * points.nbytes <= MARKED_BYTES:
         marked = [points.copy() for _ in chips]
