@@ -17,7 +17,7 @@ from pipeline.kernels import attacks
 from pipeline.orchestrate.progress import Progress
 from pipeline.orchestrate.run import plan_job, run_job
 from pipeline.orchestrate.scan import read_scan
-from tests.conftest import ROOT
+from tests.conftest import ROOT, SMALL_DETECTION
 
 pytestmark = pytest.mark.slow
 SECRET = "scan-test-secret-91c"
@@ -59,8 +59,10 @@ def scanned(tmp_path_factory):
         "output": {"dir": str(tmp / "marked"), "manifests": str(tmp / "manifests")},
         "key": {"id": "scan-key", "secret_file": str(tmp / "key")},
         "watermark": WATERMARK,
+        # the deep registration at the tests' smaller effort (the cascade's gates are the defaults)
+        "detection": SMALL_DETECTION,
         # one candidate from each ranking finds every leak's asset here; more would only add deep
-        # checks of innocent candidates (about 25 s each: leak-part and the box still make one each)
+        # checks of innocent candidates (8 to 25 s each: leak-part and the box still make one each)
         "scan": {"suspects": str(tmp / "suspects"), "catalogue": str(tmp / "catalog.parquet"),
                  "out": str(tmp / "scan"), "top_k": 1},
         "dask": {"n_workers": 2, "progress": "none"},

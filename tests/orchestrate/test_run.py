@@ -369,7 +369,8 @@ def _id_0_2_0(record):
 
 
 # the 0.2.0 defaults, which that record holds
-PARAMS_0_2_0 = WatermarkParams(beta=0.002, chip_layout="consecutive", displacement="xyz", code="repetition")
+PARAMS_0_2_0 = WatermarkParams(beta=0.002, chip_layout="consecutive", displacement="xyz", code="repetition",
+                               cover=False)
 
 
 def test_a_rerun_with_an_unchanged_config_stays_in_its_generation():
