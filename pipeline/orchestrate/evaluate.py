@@ -350,7 +350,7 @@ def run_evaluation(cfg, secret):
                     fp_futures.append(client.submit(false_positives, os.path.abspath(model),
                                                     prep[_prep_key(model, params)], params, detect_params,
                                                     material, ev["false_positive_keys"], pure=False))
-        rows, fingerprint_rows, errors, done = [], [], [], 0
+        rows, fingerprint_rows, errors, done, total = [], [], [], 0, len(futures)
         for fut in as_completed(list(futures)):
             exp = futures.pop(fut)          # released: a lost worker does not recompute collected trials
             if fut.status != "finished":    # a crashed trial (e.g. a native library fault) is reported, not fatal
@@ -361,8 +361,8 @@ def run_evaluation(cfg, secret):
             row["experiment"] = exp
             (fingerprint_rows if "case" in row else rows).append(row)
             done += 1
-            if done % 25 == 0 or done == len(futures):
-                print(f"[pointmark] evaluate: {done}/{len(futures)} trials, "
+            if done % 25 == 0 or done == total:       # (futures shrinks as trials are collected)
+                print(f"[pointmark] evaluate: {done}/{total} trials, "
                       f"{time.perf_counter() - t0:.0f}s", file=sys.stderr, flush=True)
         fp_rows = [r for f in fp_futures for r in f.result()]
     finally:
