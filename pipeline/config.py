@@ -99,9 +99,9 @@ WATERMARK = _section("Embedding parameters (paper, section 2.2).", {
                 "n_clusters clusters from seeds (the paper)."),
     "cover_amplitude": _p(["paper", "full"], "paper",
                           "With cover on a model-amplitude asset (no tile_points): paper scales every "
-                          "cluster's alpha by sqrt(min(1, n_clusters x cluster_size / points)), so the copy "
-                          "keeps the distance to the surface of the paper's n_clusters clusters; full keeps "
-                          "alpha in every cluster (more robust, farther from the surface)."),
+                          "cluster's alpha by sqrt(min(1, n_clusters / clusters planned)), so the copy moves "
+                          "by the root mean square of the paper's n_clusters clusters (its distance to the "
+                          "surface); full keeps alpha in every cluster (more robust, farther from the surface)."),
     "chip_layout": _p(["consecutive", "interleaved"], "interleaved",
                       "Chips of a bit on consecutive coefficients (paper) or spread by the key."),
     "first_coefficient": _p("integer", 0, "Index of the first modulated coefficient.", minimum=0,
