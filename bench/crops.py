@@ -16,7 +16,8 @@ attributed with the default detection (``evaluate.fingerprint_trial``).
 Rows go to ``bench/results/crops/rows.jsonl`` (resumable); the summary is
 printed and written to ``summary.md`` there.  ``python bench/crops.py 0.05 0.02``
 crops to those fractions instead (the smallest piece that still names its
-recipient).
+recipient); ``python bench/crops.py distance`` prints both configurations' MRMS
+over the paper's embedding.
 """
 
 from __future__ import annotations
@@ -67,17 +68,48 @@ def _mrms(ref, points, params, material):
 
 
 def _configs(path, points, default, material):
-    """{name: (params, handle, mrms, covered)}: clusters grown from seeds, and the default covering ones.
+    """{name: (params, handle, beta, mrms, covered)}: clusters grown from seeds, and the default covering ones.
 
     The default's clusters cover the asset at alpha * sqrt(n_clusters / clusters planned)
-    (``cover_amplitude: paper``): the seeds embedding's distance to the surface.
+    (``cover_amplitude: paper``): the seeds embedding's distance to the surface.  ``beta`` is the
+    ratio each cluster is marked at (the configured one times :func:`watermark.budget_share`).
     """
-    seeds = replace(default, cover=False)
+    from pipeline.watermark import budget_share
+
     out = {}
-    for name, params in (("seeds", seeds), ("cover", default)):
+    for name, params in (("seeds", replace(default, cover=False)), ("cover", default)):
         handle, ref = _reference(path, points, params)
-        out[name] = (params, handle, *_mrms(ref, points, params, material))
+        beta = params.beta * budget_share(params, len(ref.specs))
+        out[name] = (params, handle, beta, *_mrms(ref, points, params, material))
     return out
+
+
+DISTANCE_MODELS = [*MODELS, "kitten_12623", "nikolov_owl_12442", "pcl_tum_rabbit_10429"]
+
+
+def distance(copies=3):
+    """MRMS of the default (covering) and of clusters from seeds over the paper's embedding.
+
+    The paper's: beta 0.002 in x, y and z, 5 clusters from seeds, consecutive chips; the mean over
+    ``copies`` recipients' copies, on every scan of at least 10,000 points but the LiDAR tiles.
+    """
+    from pipeline import config
+    from pipeline.io.pointcloud import read_points
+    from pipeline.kernels import keys
+
+    default = config.watermark_params(config.load_config(None))
+    paper = replace(default, cover=False, beta=0.002, displacement="xyz", chip_layout="consecutive",
+                    code="repetition")
+    materials = [keys.derive_key_material(SECRET, f"distance-{i}") for i in range(copies)]
+    for model in DISTANCE_MODELS:
+        path = DATA / "models" / f"{model}.ply"
+        points = read_points(path).points
+        mean = {}
+        for name, params in (("paper", paper), ("seeds", replace(default, cover=False)), ("cover", default)):
+            _, ref = _reference(path, points, params)
+            mean[name] = (np.mean([_mrms(ref, points, params, m)[0] for m in materials]), len(ref.specs))
+        print(f"{model}: MRMS over the paper's, covering {mean['cover'][0] / mean['paper'][0]:.3f} "
+              f"({mean['cover'][1]} clusters), seeds {mean['seeds'][0] / mean['paper'][0]:.3f}", flush=True)
 
 
 def crops_bench(fractions=(FRACTION,)):
@@ -96,8 +128,8 @@ def crops_bench(fractions=(FRACTION,)):
     for model in MODELS:
         path = DATA / "models" / f"{model}.ply"
         points = read_points(path).points
-        for name, (params, handle, mrms, covered) in _configs(path, points, default, material).items():
-            print(f"{model} {name}: beta {params.beta:.6f}, MRMS {100 * mrms:.4f} % of the diagonal, "
+        for name, (params, handle, beta, mrms, covered) in _configs(path, points, default, material).items():
+            print(f"{model} {name}: beta {beta:.6f}, MRMS {100 * mrms:.4f} % of the diagonal, "
                   f"{100 * covered:.0f} % of the points in a cluster", flush=True)
             for fraction in fractions:
                 for seed in SEEDS:
@@ -106,7 +138,7 @@ def crops_bench(fractions=(FRACTION,)):
                     row = evaluate.fingerprint_trial(path, handle, params, detect,
                                                      f"crop:{fraction}+random_similarity", "single", seed,
                                                      material, RECIPIENTS)
-                    row.update(config=name, beta=params.beta, mrms_rel_diag=mrms, covered=covered,
+                    row.update(config=name, beta=beta, mrms_rel_diag=mrms, covered=covered,
                                fraction=fraction)
                     with rows_path.open("a") as f:
                         f.write(json.dumps(row) + "\n")
@@ -145,5 +177,7 @@ def summary():
 if __name__ == "__main__":
     if sys.argv[1:] == ["summary"]:
         summary()
+    elif sys.argv[1:] == ["distance"]:
+        distance()
     else:
         crops_bench(tuple(float(a) for a in sys.argv[1:]) or (FRACTION,))
