@@ -324,7 +324,8 @@ def needs_search(transform, suspect, original, spacing):
 SEARCH_REFINED = 6     # of the search's coarse poses, refined on the ICP subsample (the best on every point)
 
 
-def register_search(suspect, original, *, spacing, rotations, poses, icp_points=6000, rng=0, normals=None):
+def register_search(suspect, original, *, spacing, rotations, poses, icp_points=6000, rng=0, normals=None,
+                    others=None):
     """Part-to-whole registration without features: :func:`registration.rotation_search` then ICP.
 
     The scale comes from the ratio of point spacings (a crop keeps its
@@ -332,6 +333,12 @@ def register_search(suspect, original, *, spacing, rotations, poses, icp_points=
     rotations is refined by a short trimmed ICP on about 1,500 points; the
     :data:`SEARCH_REFINED` best (ordered as :func:`best_overlap` orders)
     again on the ICP subsample, and the best of those on every point.
+
+    A part of a near-symmetric shape (a piece of a solid of revolution) fits
+    at many poses, and overlap alone cannot tell which is true.  With
+    ``others`` given, the distinct poses that fit about as well as the
+    chosen one (:func:`registration.poses_alike`) are refined the same way
+    and appended to it, so that a detector can read the mark at each of them.
 
     Parameters
     ----------
@@ -345,6 +352,9 @@ def register_search(suspect, original, *, spacing, rotations, poses, icp_points=
     rng : int
     normals : (m, 3) float, optional
         The original's normals, when the caller has them (else estimated once per original).
+    others : list, optional
+        Filled with the other poses (registration.Similarity) that fit about
+        as well, at most ``registration.MAX_POSES``, tightest first.
 
     Returns
     -------
@@ -371,10 +381,17 @@ def register_search(suspect, original, *, spacing, rotations, poses, icp_points=
     quick.sort(key=lambda q: (q[0][0] < top - OVERLAP_TIE, q[0][1]))      # best_overlap's order
     fits = [refined(sub, q[1], 60, ref.sample) for q in quick[:SEARCH_REFINED]]
     best = fits[best_overlap([rank for rank, _ in fits])][1]
-    return polish(suspect, original, registration.refine_part(suspect, ref.tree, original, best, spacing=spacing,
-                                                              widths=(3.0,), iterations=FINAL_ITERATIONS),
-                  spacing=spacing, normals=normals)
 
+    def final(pose):
+        return polish(suspect, original, registration.refine_part(suspect, ref.tree, original, pose, spacing=spacing,
+                                                                  widths=(3.0,), iterations=FINAL_ITERATIONS),
+                      spacing=spacing, normals=normals)
+
+    chosen = final(best)
+    if others is not None:
+        alike = registration.poses_alike(probe, ref.tree, ref.sample[:1000], chosen, [q[1] for q in quick], spacing)
+        others.extend(registration.distinct_poses(probe, chosen, [final(pose) for pose in alike], spacing))
+    return chosen
 
 
 def polish(suspect, original, transform, *, spacing, normals=None):

@@ -232,6 +232,11 @@ def fingerprint_observation(estimate, specs, params):
                                    params.total_bits * params.chip_rate)
 
 
+def fingerprint_observations(estimate, specs, params):
+    """The observation y at the chosen pose, then at each other pose that fits as well (``other_poses``)."""
+    return [fingerprint_observation(e, specs, params) for e in [estimate, *estimate.get("other_poses", ())]]
+
+
 def frame_of(points):
     """Centre, phi and diagonal of a point set, after checking it is a surface.
 
@@ -620,7 +625,7 @@ REGISTERED = (0.05, 0.1)   # least fitness (share of the suspect on the original
 
 
 def estimate_differences(suspect, reference, specs, bases, detect_params, params, *, normals=None,
-                         grams=None, spacing=None, deep=True, times=None):
+                         grams=None, spacing=None, deep=True, times=None, every_pose=False):
     """Register the suspect and estimate every cluster's r-hat - r (independent of the key).
 
     ``params`` are the embedding's (:class:`WatermarkParams`): its
@@ -630,13 +635,18 @@ def estimate_differences(suspect, reference, specs, bases, detect_params, params
     computed here when not given.  ``deep`` and ``times`` are :func:`register`'s:
     with ``deep=False`` a suspect that only the deep registration steps could
     place raises :class:`Undecided` (``times`` then holds the quick steps' seconds).
+    ``every_pose``: also find and read the other poses that fit about as well
+    (a fingerprint reader counts each; a message decoder reads one pose).
 
     Returns
     -------
     dict with ``seconds_quick`` and ``seconds_deep`` (the registration's two parts), ``deltas`` (list of (K, 3) float), ``support`` and ``registration``
         (method, scale, fitness and coverage within 3 spacings, residual,
         rotation, translation, and ``failed`` when fitness or coverage is
-        under :data:`REGISTERED`)
+        under :data:`REGISTERED`), and ``other_poses``: the same three for
+        each other pose that fits about as well (a part of a near-symmetric
+        shape, :func:`register`; empty unless ``every_pose``), which a
+        fingerprint reader scores too and counts.
     """
     t0 = time.perf_counter()
     spacing = resampling.nearest_spacing(reference) if spacing is None else spacing
@@ -644,36 +654,45 @@ def estimate_differences(suspect, reference, specs, bases, detect_params, params
         normals = resampling.estimate_normals(reference)      # once, for the registration and the fit
     tree = cKDTree(reference)
     times = {} if times is None else times
+    others = []
     try:
         transform = register(suspect, reference, float(np.median(spacing)), detect_params, tree, normals,
-                             deep=deep, times=times)
+                             deep=deep, times=times, poses=others if every_pose else None)
     except Undecided:
         times["quick"] = time.perf_counter() - t0      # the reference's spacing, normals and tree too
         raise
-    aligned = registration.apply(transform, suspect)
-    fitness, coverage, _ = registration.overlap(aligned, tree, _coverage_sample(reference),
-                                                3.0 * float(np.median(spacing)))
     t1 = time.perf_counter()
-    deltas, support = _coefficient_differences(aligned, reference, specs, bases, detect_params, params,
-                                               normals, grams, spacing)
+
+    def at(pose):
+        aligned = registration.apply(pose, suspect)
+        fitness, coverage, _ = registration.overlap(aligned, tree, _coverage_sample(reference),
+                                                    3.0 * float(np.median(spacing)))
+        deltas, support = _coefficient_differences(aligned, reference, specs, bases, detect_params, params,
+                                                   normals, grams, spacing)
+        return {"deltas": deltas, "support": support,
+                "registration": _registration_record(pose, fitness, coverage, reference, detect_params)}
+
     return {
         "seconds_registration": t1 - t0,
         "seconds_quick": t1 - t0 - times["deep"],
         "seconds_deep": times["deep"],
+        **at(transform),
+        "other_poses": [at(pose) for pose in others],
         "seconds_estimate": time.perf_counter() - t1,
-        "deltas": deltas,
-        "support": support,
-        "registration": {
-            "method": detect_params.registration,
-            "scale": float(transform.scale),
-            "fitness": float(fitness),
-            "coverage": float(coverage),
-            # too little of either cloud lies on the other: nothing was registered
-            "failed": bool(fitness < REGISTERED[0] or coverage < REGISTERED[1]),
-            "residual_rel_diag": float(transform.residual) / _diag(reference),
-            "rotation": np.asarray(transform.rotation, dtype=np.float64).tolist(),
-            "translation": np.asarray(transform.translation, dtype=np.float64).tolist(),
-        },
+    }
+
+
+def _registration_record(transform, fitness, coverage, reference, detect_params):
+    return {
+        "method": detect_params.registration,
+        "scale": float(transform.scale),
+        "fitness": float(fitness),
+        "coverage": float(coverage),
+        # too little of either cloud lies on the other: nothing was registered
+        "failed": bool(fitness < REGISTERED[0] or coverage < REGISTERED[1]),
+        "residual_rel_diag": float(transform.residual) / _diag(reference),
+        "rotation": np.asarray(transform.rotation, dtype=np.float64).tolist(),
+        "translation": np.asarray(transform.translation, dtype=np.float64).tolist(),
     }
 
 
@@ -724,7 +743,7 @@ class Undecided(Exception):
     """A quick registration (``deep=False``) that only the expensive steps could settle."""
 
 
-def register(suspect, reference, spacing, detect_params, tree, normals=None, *, deep=True, times=None):
+def register(suspect, reference, spacing, detect_params, tree, normals=None, *, deep=True, times=None, poses=None):
     """Suspect-to-reference similarity by ``detect_params.registration``, with its effort settings.
 
     The robust registration is a cascade.  Its quick steps (principal frames
@@ -746,6 +765,12 @@ def register(suspect, reference, spacing, detect_params, tree, normals=None, *, 
         False: raise :class:`Undecided` where the deep steps would run.
     times : dict, optional
         Filled with ``quick`` and ``deep``: seconds of each part.
+    poses : list, optional
+        Filled with the other poses that fit about as well as the one
+        returned: where the rotation search chose it, a part of a
+        near-symmetric shape (:func:`features.register_search`); where the
+        quick steps settled a whole copy, the copy turned about a
+        near-symmetry axis of the original (:func:`_turned_poses`).
 
     Returns
     -------
@@ -783,6 +808,8 @@ def register(suspect, reference, spacing, detect_params, tree, normals=None, *, 
         # short at 50 % outliers on sparse scans): polish with fixed cuts
         found = registration.refine_part(suspect, tree, reference, robust, spacing=spacing,
                                          widths=POLISH_WIDTHS, iterations=POLISH_ITERATIONS)
+        if poses is not None:
+            poses.extend(_turned_poses(suspect, reference, found, spacing, tree))
         times["quick"] = time.perf_counter() - t0
         return found
     from . import features   # open3d: imported only when needed
@@ -809,18 +836,24 @@ def register(suspect, reference, spacing, detect_params, tree, normals=None, *, 
         search = features.needs_search(best, suspect, reference, spacing)
     if search:
         # a part laid loosely on a smooth shape, where features mislead: search every rotation
+        others = []
         searched = features.register_search(suspect, reference, spacing=spacing, normals=normals,
                                             rotations=detect_params.search_rotations,
-                                            poses=detect_params.search_poses)
+                                            poses=detect_params.search_poses, others=others)
         if searched is not None:
             tried.append(searched)
             ranked.append(features.overlap_of(searched, suspect, reference, spacing))
             best = tried[features.best_overlap(ranked)]
             if best is searched:
+                if poses is not None:
+                    poses.extend(others)
                 times["deep"] = time.perf_counter() - t1
                 return searched          # register_search ends with the polish already
+            others = [searched, *others]     # the search's poses, beside another step's
     # point-to-point ICP slides slowly along smooth surfaces: finish on the tangent planes
     found = features.polish(suspect, reference, best, spacing=spacing, normals=normals)
+    if search and poses is not None and searched is not None:
+        poses.extend(registration.poses_alike(suspect, tree, _coverage_sample(reference), found, others, spacing))
     times["deep"] = time.perf_counter() - t1
     return found
 
@@ -829,6 +862,31 @@ POLISH_WIDTHS = (3.0, 1.5)   # fixed ICP cuts (spacings) polishing a whole copy'
 POLISH_ITERATIONS = 60       # most ICP steps per cut
 PART_SHAPE = 0.3         # most |log| difference of principal spreads for a part tried whole
 MAX_PARTS = 3            # most parts registered whole, the most original-like first
+
+
+def _turned_poses(suspect, reference, found, spacing, tree, most=1500):
+    """Poses of a whole copy turned about the original's near-symmetry axes that fit as well as ``found``.
+
+    The principal frames of a near solid of revolution leave the turn about
+    its axis open, and ICP settles wherever it starts: each turn of
+    :func:`registration.axis_turns` is refined on at most ``most`` points,
+    those that fit about as well (:func:`registration.poses_alike`) on all.
+    Empty for an original without such an axis, and where ``found`` puts
+    less than :data:`registration.POSES_FIT` of the suspect on it.
+    """
+    sub = suspect[:: max(1, len(suspect) // most)]
+    sample = _coverage_sample(reference)
+    starts = registration.axis_turns(reference, found)
+    if not starts or registration.overlap(registration.apply(found, sub), tree, sample,
+                                          3.0 * spacing)[0] < registration.POSES_FIT:
+        return []
+
+    def refined(points, start):
+        return registration.refine_part(points, tree, reference, start, spacing=spacing, widths=POLISH_WIDTHS,
+                                        iterations=POLISH_ITERATIONS)
+
+    alike = registration.poses_alike(sub, tree, sample, found, [refined(sub, s) for s in starts], spacing)
+    return registration.distinct_poses(suspect, found, [refined(suspect, p) for p in alike], spacing)
 
 
 def _register_parts(suspect, reference, spacing, tree):

@@ -143,6 +143,31 @@ def cluster_scores(y, chips, n_clusters):
                      for a, b in zip(parts_y, parts_x)])
 
 
+def scores_over_poses(ys, bank):
+    """Each recipient's best score over the poses a suspect was read at.
+
+    A part of a near-symmetric shape fits at several poses; the mark is read
+    at each.  Every pose is another test of every recipient: the threshold
+    must count ``len(ys) * n_recipients`` checks.
+
+    Parameters
+    ----------
+    ys : sequence of (length,) float
+        The observation at each pose (at least one).
+    bank : (n_recipients, ceil(length / 8)) uint8
+
+    Returns
+    -------
+    best : (n_recipients,) float
+        The highest score of each recipient.
+    pose : (n_recipients,) int
+        The index into ``ys`` where it was reached (the first on a tie).
+    """
+    table = np.stack([scores(y, bank) for y in ys])
+    pose = np.argmax(table, axis=0)
+    return table[pose, np.arange(table.shape[1])], pose
+
+
 def threshold(n_checked, epsilon):
     """Score an innocent exceeds with probability at most epsilon / n_checked."""
     return float(np.sqrt(2.0 * np.log(max(int(n_checked), 1) / float(epsilon))))

@@ -644,6 +644,104 @@ def rotation_search(suspect, original, scale, *, rotations=1000, grid=64, top=12
     return [(s, Similarity(r, float(scale), t)) for s, r, t in found[:top]]
 
 
+POSES_FIT = 0.5           # other poses are sought only where this share of the suspect lies on the original
+POSE_FITNESS_TIE = 0.1     # another pose fits as well: fitness at most this below the chosen pose's,
+POSE_RESIDUAL_TIE = 1.25   # and residual at most this times its residual
+POSE_APART = 3.0           # spacings: poses whose points lie closer than this (mean) are the same pose
+MAX_POSES = 32             # most poses kept beside the chosen one
+SYMMETRY_TIE = 0.93        # two principal spreads at least this alike: the third axis is near-symmetric
+AXIS_TURNS = 72            # turns about a near-symmetry axis tried from a whole copy's registration (5 degrees)
+
+
+def poses_alike(points, tree, sample, chosen, poses, spacing):
+    """Those of ``poses`` that fit ``points`` about as well as ``chosen``, distinct, tightest first.
+
+    A part of a near-symmetric shape, or a whole copy turned about its
+    near-symmetry axis, fits at several poses that overlap cannot tell apart.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+        The suspect (or a subsample).
+    tree : cKDTree
+        Over the original points.
+    sample : (k, 3) float
+        Original points at which coverage is measured.
+    chosen : Similarity
+    poses : sequence of Similarity
+    spacing : float
+        Median nearest-neighbour distance of the original.
+
+    Returns
+    -------
+    list of Similarity
+        Fitness (within 3 spacings) at most :data:`POSE_FITNESS_TIE` below
+        the chosen pose's, residual at most :data:`POSE_RESIDUAL_TIE` times
+        its own, each :data:`POSE_APART` apart from the chosen pose and the
+        others; at most :data:`MAX_POSES`.  Empty where the chosen pose puts
+        less than :data:`POSES_FIT` of ``points`` on the original (a suspect
+        that is not this original fits nowhere, at many poses alike).
+    """
+    def fit(pose):
+        f, _, r = overlap(apply(pose, points), tree, sample, 3.0 * spacing)
+        return f, r
+
+    f0, r0 = fit(chosen)
+    if f0 < POSES_FIT:
+        return []
+    order = sorted((r, i) for i, (f, r) in enumerate(map(fit, poses))
+                   if f >= f0 - POSE_FITNESS_TIE and r <= POSE_RESIDUAL_TIE * max(r0, 1e-3 * spacing))
+    return distinct_poses(points, chosen, [poses[i] for _, i in order], spacing)
+
+
+def distinct_poses(points, chosen, poses, spacing):
+    """``poses`` in order, less each within :data:`POSE_APART` spacings (mean over ``points``) of an earlier one.
+
+    ``chosen`` counts as earlier than all; at most :data:`MAX_POSES` are returned.
+    """
+    kept, placed = [], [apply(chosen, points)]
+    for pose in poses:
+        moved = apply(pose, points)
+        if all(np.linalg.norm(moved - p, axis=1).mean() >= POSE_APART * spacing for p in placed):
+            kept.append(pose)
+            placed.append(moved)
+            if len(kept) == MAX_POSES:
+                break
+    return kept
+
+
+def axis_turns(original, transform, steps=AXIS_TURNS):
+    """``transform`` turned about each near-symmetry axis of ``original``, through its centroid.
+
+    An axis is near-symmetric when the spreads along the other two principal
+    axes are at least :data:`SYMMETRY_TIE` alike (a vase, a birdbath): its
+    principal frame then leaves the turn about it open.
+
+    Parameters
+    ----------
+    original : (m, 3) float
+    transform : Similarity
+        Suspect to original.
+    steps : int
+        Turns per axis, evenly spaced (the identity excluded).
+
+    Returns
+    -------
+    list of Similarity
+        Empty when the original has no near-symmetric axis.
+    """
+    centroid, axes, _ = principal_frame(original)
+    spread = shape_signature(original)
+    turns = []
+    for k, (i, j) in enumerate(((1, 2), (0, 2), (0, 1))):      # axis k, with the spreads of the other two
+        if min(spread[i], spread[j]) >= SYMMETRY_TIE * max(spread[i], spread[j]):
+            for angle in 2.0 * np.pi * np.arange(1, steps) / steps:
+                turn = Rotation.from_rotvec(angle * axes[:, k]).as_matrix()
+                turns.append(Similarity(turn @ transform.rotation, transform.scale,
+                                        turn @ (transform.translation - centroid) + centroid))
+    return turns
+
+
 def connected_parts(points, radius, *, min_points=1):
     """The connected parts of a point set: points about ``radius`` apart or closer are linked.
 

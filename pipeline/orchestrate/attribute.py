@@ -28,7 +28,7 @@ from ..io.ledger import mac_ok
 from ..io.pointcloud import InputError, read_points, sha256_file
 from ..io.secrets import SecretError
 from ..kernels import fingerprint, keys
-from ..watermark import (Undecided, estimate_differences, fingerprint_length, fingerprint_observation,
+from ..watermark import (Undecided, estimate_differences, fingerprint_length, fingerprint_observations,
                          params_from_record)
 from .reference import load_reference
 from .tasks import copy_label
@@ -117,7 +117,8 @@ def check_asset(suspect_path, rows, materials, store, detect_params, *, places=(
         times = {}
         try:
             est = estimate_differences(suspect - ref.centre, original - ref.centre, ref.specs, ref.bases,
-                                       detect_params, params, deep=deep, times=times, **ref.detection_aids())
+                                       detect_params, params, deep=deep, times=times, every_pose=True,
+                                       **ref.detection_aids())
         except Undecided:
             seconds["registration"] += times["quick"]
             seconds["quick"] += times["quick"]
@@ -128,11 +129,11 @@ def check_asset(suspect_path, rows, materials, store, detect_params, *, places=(
         seconds["deep"] += est["seconds_deep"]
         seconds["estimate"] += est["seconds_estimate"]
         t0 = time.perf_counter()
-        y = fingerprint_observation(est, ref.specs, params)
+        ys = fingerprint_observations(est, ref.specs, params)
         for key_id, generation_id in sorted({(r["key_id"], r["generation_id"]) for r in ref_rows}):
             if key_id in materials:
                 rows_g = [r for r in ref_rows if (r["key_id"], r["generation_id"]) == (key_id, generation_id)]
-                groups.append({**_score_group(y, ref, params, rows_g, materials[key_id], est["registration"]),
+                groups.append({**_score_group(ys, ref, params, rows_g, materials[key_id], est),
                                "original_path": str(files[sha])})
         seconds["scoring"] += time.perf_counter() - t0
     return {"asset_key": rows[0]["asset_key"], "groups": groups, "stopped": stopped, "seconds": seconds,
@@ -185,24 +186,33 @@ def _sha256_or_reason(path):
         return None, exc.strerror or type(exc).__name__
 
 
-def _score_group(y, ref, params, rows, material, registration):
+def _score_group(ys, ref, params, rows, material, estimate):
+    """One key's recipients of one reference scored at every pose read (``ys``, the chosen pose first).
+
+    ``n_recipients`` times ``n_poses`` recipients count as checked.
+    """
     recipients = sorted({r["recipient"] for r in rows})
     bank = fingerprint.chip_bank(material, copy_label(rows[0]["asset_key"], rows[0]["generation"]), recipients,
                                  fingerprint_length(len(ref.specs), params))
-    s = fingerprint.scores(y, bank)
+    s, pose = fingerprint.scores_over_poses(ys, bank)
     keep = np.union1d(np.argsort(-s, kind="stable")[:TOP], np.flatnonzero(s >= FLOOR))
     generations = defaultdict(list)
     for r in rows:
         generations[r["recipient"]].append((int(r["generation"]), r["output_path"]))
+    poses = [estimate, *estimate.get("other_poses", ())]
+    # a mark at any pose: the best pose's chi-square, Bonferroni over the poses
+    presence = min(1.0, len(ys) * min(fingerprint.presence(fingerprint.scores(y, bank)) for y in ys)) \
+        if len(ys) > 1 else fingerprint.presence(s)
     return {
         "asset_key": rows[0]["asset_key"], "key_id": rows[0]["key_id"], "reference_key": rows[0]["reference_key"],
         "generation": int(rows[0]["generation"]), "reference": reference_record(rows[0]),
-        "n_recipients": len(recipients), "presence_p": fingerprint.presence(s),
+        "n_recipients": len(recipients), "n_poses": len(ys), "presence_p": presence,
         "best": [{"recipient": recipients[i], "score": float(s[i]), "copies": sorted(generations[recipients[i]]),
-                  "cluster_scores": (fingerprint.cluster_scores(y, fingerprint.signs(bank[i], len(y))[0], len(ref.specs))
-                                     .tolist() if s[i] >= FLOOR else None)}
+                  "pose": int(pose[i]), "registration": poses[pose[i]]["registration"],
+                  "cluster_scores": (fingerprint.cluster_scores(ys[pose[i]], fingerprint.signs(bank[i], len(ys[0]))[0],
+                                                                len(ref.specs)).tolist() if s[i] >= FLOOR else None)}
                  for i in keep],
-        "registration": registration,
+        "registration": estimate["registration"],
     }
 
 
@@ -229,7 +239,7 @@ def decide(checks, epsilon, prior_checked=0, planned=0):
         threshold, best_innocent_score.
     """
     groups = [g for c in checks for g in c["groups"]]
-    n_checked = max(sum(g["n_recipients"] for g in groups), int(planned)) + int(prior_checked)
+    n_checked = max(sum(g["n_recipients"] * g.get("n_poses", 1) for g in groups), int(planned)) + int(prior_checked)
     t = fingerprint.threshold(max(n_checked, 1), epsilon)
     scored = [(b["score"], g, b) for g in groups for b in g["best"]]
     accused = sorted((x for x in scored if x[0] >= t), key=lambda x: -x[0])
@@ -237,7 +247,7 @@ def decide(checks, epsilon, prior_checked=0, planned=0):
     result = {"n_checked": n_checked, "threshold": t, "best_innocent_score": innocent,
               "accused": [{"recipient": b["recipient"], "asset_key": g["asset_key"], "key_id": g["key_id"],
                            "score": s, "p_value": fingerprint.corrected_p(s, n_checked), "margin": s - innocent,
-                           "copies": b["copies"], "registration": g["registration"],
+                           "copies": b["copies"], "registration": b.get("registration", g["registration"]),
                            "cluster_scores": b["cluster_scores"], "reference_key": g["reference_key"],
                            "reference": g["reference"], "original_path": g.get("original_path")}
                           for s, g, b in accused]}

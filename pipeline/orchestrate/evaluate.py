@@ -24,7 +24,7 @@ from ..io.pointcloud import atomic_write_bytes, read_points, units_of
 from ..kernels import fingerprint, keys, modulation
 from ..surface import apply_chain, parse_attack
 from ..watermark import (decode, distortion, embed_with_bases, estimate_differences, fingerprint_displacement,
-                         fingerprint_length, fingerprint_observation)
+                         fingerprint_length, fingerprint_observations)
 from .reference import build_reference, load_reference
 
 __all__ = ["run_evaluation", "parse_chain", "trial", "prepare_bases", "load_bases", "fingerprint_trial",
@@ -214,15 +214,16 @@ def fingerprint_trial(model_path, handle, params, detect_params, chain_text, cas
     attacked = apply_chain(suspect + ref.centre, parse_chain(chain_text) + [("shuffle", None)], rng=seed,
                            faces=cloud.faces())
     est = estimate_differences(attacked - ref.centre, centred, ref.specs, ref.bases, detect_params,
-                               params, **ref.detection_aids())
-    s = fingerprint.scores(fingerprint_observation(est, ref.specs, params), bank)
-    accused, _ = fingerprint.accuse(s, n_recipients, detect_params.epsilon)
+                               params, every_pose=True, **ref.detection_aids())
+    s, _ = fingerprint.scores_over_poses(fingerprint_observations(est, ref.specs, params), bank)
+    n_checked = n_recipients * (1 + len(est["other_poses"]))      # every pose read tests every recipient
+    accused, _ = fingerprint.accuse(s, n_checked, detect_params.epsilon)
     innocent = np.setdiff1d(np.arange(n_recipients), colluders)
     guilty = set(colluders.tolist())
     return {
         "model": Path(model_path).stem, "case": case, "colluders": int(k), "attack": chain_text, "seed": int(seed),
         "n_recipients": n_recipients, "epsilon": detect_params.epsilon,
-        "threshold": fingerprint.threshold(n_recipients, detect_params.epsilon),
+        "threshold": fingerprint.threshold(n_checked, detect_params.epsilon), "n_poses": 1 + len(est["other_poses"]),
         "accused_colluders": int(sum(a in guilty for a in accused.tolist())),
         "accused_innocents": int(sum(a not in guilty for a in accused.tolist())),
         "min_colluder_score": float(s[colluders].min()) if k else float("nan"),

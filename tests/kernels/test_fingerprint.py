@@ -90,3 +90,19 @@ def test_observation_weights_clusters_by_coverage_over_energy():
     y = fp.observation([d1, d2], [1.0, 0.5], first=2, count=4)
     assert y.shape == (2 * 3 * 4,)
     assert np.allclose(y[:12], 1.0) and np.allclose(y[12:], 0.5 * 3 / 9)
+
+
+def test_the_best_score_over_poses_is_each_recipients_maximum_and_keeps_the_bound_when_counted():
+    rng = np.random.default_rng(4)
+    n, length, poses = 2000, 480, 8
+    bank = fp.chip_bank(MATERIAL, "sym", [f"r{i}" for i in range(n)], length)
+    ys = [rng.normal(size=length) for _ in range(poses)]
+    best, pose = fp.scores_over_poses(ys, bank)
+    table = np.stack([fp.scores(y, bank) for y in ys])
+    assert np.array_equal(best, table.max(axis=0)) and np.array_equal(table[pose, np.arange(n)], best)
+    one, at = fp.scores_over_poses(ys[:1], bank)
+    assert np.array_equal(one, fp.scores(ys[0], bank)) and not at.any()
+    # the maximum of 8 poses exceeds t as often as 8 tests can, never more: count every pose
+    for t in (2.0, 2.5, 3.0):
+        assert (best >= t).mean() <= poses * np.exp(-t * t / 2)
+    assert fp.accuse(best, n * poses, 1e-3)[0].size == 0

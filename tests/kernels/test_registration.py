@@ -1,6 +1,6 @@
 import numpy as np
 
-from pipeline.kernels import attacks
+from pipeline.kernels import attacks, registration
 from pipeline.kernels.registration import (apply, connected_parts, register_covariance, register_robust,
                                           separate_objects, shape_signature, umeyama)
 from tests.conftest import sphere_patch
@@ -181,3 +181,37 @@ def test_plane_icp_gives_the_same_pose_in_metres_and_millimetres():
     (r1, s1, t1), (r2, s2, t2) = poses
     assert np.allclose(r1, r2, atol=1e-6) and abs(s1 - s2) < 1e-6 and np.allclose(t1, t2, atol=1e-6)
     assert np.allclose(r1, turn.T, atol=1e-5) and abs(s1 - 1.0) < 1e-6     # and it is the true pose
+
+
+def test_turns_about_an_axis_exist_only_for_a_near_symmetric_shape_and_keep_its_centroid():
+    rng = np.random.default_rng(0)
+    theta, z = rng.uniform(0, 2 * np.pi, 4000), rng.uniform(-1, 1, 4000)
+    tube = np.column_stack([2 * np.cos(theta), 2 * np.sin(theta), 3 * z])       # symmetric about z
+    box = rng.uniform(-1, 1, (4000, 3)) * [4.0, 2.0, 1.0]                         # three distinct spreads
+    pose = registration.Similarity(np.eye(3), 1.0, np.zeros(3))
+    assert registration.axis_turns(box, pose) == []
+    turns = registration.axis_turns(tube, pose, steps=12)
+    assert len(turns) == 11
+    centroid = tube.mean(axis=0)
+    for turn in turns:
+        moved = registration.apply(turn, tube)
+        assert np.allclose(moved.mean(axis=0), centroid, atol=1e-9)
+        assert np.allclose(moved[:, 2], tube[:, 2], atol=0.2)        # turned about the long axis only
+        assert np.abs(moved - tube).max() > 0.5
+
+
+def test_poses_alike_keeps_distinct_poses_that_fit_as_well_and_drops_the_rest():
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(1)
+    theta, z = rng.uniform(0, 2 * np.pi, 6000), rng.uniform(-1, 1, 6000)
+    tube = np.column_stack([np.cos(theta), np.sin(theta), z]) * 20.0
+    spacing = float(np.median(cKDTree(tube).query(tube, k=2)[0][:, 1]))
+    theta, z = rng.uniform(-0.6, 0.6, 1500), rng.uniform(-1, 1, 1500)
+    part = np.column_stack([np.cos(theta), np.sin(theta), z]) * 20.0      # other samples of the same surface
+    identity = registration.Similarity(np.eye(3), 1.0, np.zeros(3))
+    turn = registration.Similarity(attacks.rotation_matrix("z", 90.0), 1.0, np.zeros(3))
+    same = registration.Similarity(np.eye(3), 1.0, np.array([0.0, 0.0, 0.5 * spacing]))
+    off = registration.Similarity(np.eye(3), 1.0, np.array([10.0 * spacing, 0.0, 0.0]))
+    kept = registration.poses_alike(part, cKDTree(tube), tube[::10], identity, [same, off, turn], spacing)
+    assert len(kept) == 1 and kept[0] is turn

@@ -25,6 +25,17 @@ def test_a_scan_that_stops_at_the_first_match_counts_every_planned_recipient():
     assert np.isclose(planned["p_value"], min(1.0, 10_000 * np.exp(-6.5 ** 2 / 2)))
 
 
+def test_every_pose_the_mark_was_read_at_counts_as_a_check_of_every_recipient():
+    check = _check([6.7, 0.3, -0.5])
+    once = decide([check], 1e-6, planned=1000)
+    check["groups"][0]["n_poses"] = 3000          # a piece of a solid of revolution read at 3,000 poses
+    many = decide([check], 1e-6, planned=1000)
+    assert once["n_checked"] == 1000 and many["n_checked"] == 9000
+    assert many["threshold"] == fingerprint.threshold(9000, 1e-6)
+    # 6.7 clears the threshold for 1,000 checks (6.44) but not for 9,000 (6.77)
+    assert once["verdict"] == "match" and many["verdict"] == "no match"
+
+
 def test_earlier_scans_add_to_the_planned_count():
     assert decide([_check([1.0])], 1e-6, prior_checked=50, planned=20)["n_checked"] == 70
 
