@@ -180,14 +180,17 @@ def _paper_distance(curve):
     return float(x[at[0]]) if len(at) else float(np.median(x))
 
 
-def _at(curve, x0):
-    """Value of a curve (x ascending) at x0, linear in log x; nan outside its range."""
+def _at(curve, x0, slack=1e-9):
+    """Value of a curve (x ascending) at x0, linear in log x; nan outside its range widened by ``slack`` (log)."""
     x, y = curve
     order = np.argsort(x)
     x, y = np.log(x[order]), y[order]
-    if not (x[0] - 1e-9 <= np.log(x0) <= x[-1] + 1e-9):
+    if not (x[0] - slack <= np.log(x0) <= x[-1] + slack):
         return float("nan")
     return float(np.interp(np.log(x0), x, y))
+
+
+READ_SLACK = np.log(1.02)   # a fingerprint curve within 2 % of a distance is read there (at its end point)
 
 
 def plot_rate_distortion(rows, folder):
@@ -279,12 +282,14 @@ def fingerprint_lines(rows):
     if not rows:
         return []
     table = []
-    for (model, case, attack), rs in sorted(_group(rows, ("model", "case", "attack")).items()):
+    cells = _group([{"beta": None, **r} for r in rows], ("model", "case", "attack", "beta"))
+    for (model, case, attack, beta), rs in sorted(cells.items(), key=lambda kv: (*kv[0][:3], kv[0][3] or 0.0)):
         k = rs[0]["colluders"]
         hit = sum(r["accused_colluders"] > 0 for r in rs)
         every = sum(r["accused_colluders"] == k for r in rs) if k else 0
         scores = [r["min_colluder_score"] for r in rs if k]
-        table.append([model, case, attack, len(rs), rs[0]["n_recipients"], f"{rs[0]['threshold']:.2f}",
+        table.append([model, case, attack, "-" if beta is None else f"{beta:.6f}", len(rs), rs[0]["n_recipients"],
+                      f"{max(r['threshold'] for r in rs):.2f}",
                       f"{hit}/{len(rs)}" if k else "-", f"{every}/{len(rs)}" if k else "-",
                       f"{min(scores):.1f}" if scores else "-", sum(r["accused_innocents"] for r in rs),
                       f"{max(r['max_innocent_score'] for r in rs):.2f}"])
@@ -296,7 +301,8 @@ def fingerprint_lines(rows):
             f"Each trial issues fingerprinted copies to {rows[0]['n_recipients']} recipients; colluders average their "
             "copies or take each point from one of them at random; the suspect is attacked and shuffled. A "
             f"recipient is accused when the score clears sqrt(2 ln(n / eps)), eps = {eps:g} per suspect.", "",
-            _md_table(["model", "case", "attack", "trials", "recipients", "threshold", ">= 1 colluder accused",
+            _md_table(["model", "case", "attack", "beta", "trials", "recipients", "threshold (highest)",
+                       ">= 1 colluder accused",
                        "all colluders accused", "lowest colluder score", "innocents accused",
                        "highest innocent score"], table), "",
             f"Innocent checks: {checks:,}. Share of innocent scores over t, against the bound exp(-t^2/2) "
@@ -304,12 +310,107 @@ def fingerprint_lines(rows):
             _md_table(["score", "innocents", "share", "bound"], tails), ""]
 
 
+PAPER_DISTANCE = "paper-distance"   # message rows of the paper's embedding (beta 0.002, xyz): its distance
+CHO_DISTANCE = 0.00012               # Cho et al. 2007: MRMS 0.008-0.012 % of the diagonal (the upper end)
+
+
+def paper_distances(rows):
+    """{model: MRMS / diag of the paper's embedding} from the ``paper-distance`` experiment's rows."""
+    return {model: float(np.mean([r["mrms_rel_diag"] for r in rs]))
+            for (model,), rs in _group([r for r in rows if r["experiment"] == PAPER_DISTANCE], ("model",)).items()}
+
+
+def fingerprint_curves(rows):
+    """{model: {"case, attack": (distance, named, margin, trials, beta) arrays by beta}} of cells at 2+ betas.
+
+    ``named``: share of trials with a colluder accused; ``margin``: the
+    median over trials of the lowest colluder score less the threshold.
+    """
+    curves = defaultdict(dict)
+    marked = [r for r in rows if r["colluders"] and r.get("beta") is not None]
+    for (model, case, attack), rs in _group(marked, ("model", "case", "attack")).items():
+        cells = sorted(_group(rs, ("beta",)).items())
+        if len(cells) < 2:
+            continue
+        curves[model][f"{case}, {attack}"] = (
+            np.array([np.mean([r["mrms_rel_diag"] for r in c]) for _, c in cells]),
+            np.array([np.mean([r["accused_colluders"] > 0 for r in c]) for _, c in cells]),
+            np.array([np.median([r["min_colluder_score"] - r["threshold"] for r in c]) for _, c in cells]),
+            np.array([len(c) for _, c in cells]), np.array([b for (b,), _ in cells]))
+    return curves
+
+
+def plot_fingerprint_rate_distortion(rows, message_rows, folder):
+    """Leaker named, and the margin over the threshold, against MRMS: one figure per model."""
+    curves, paper = fingerprint_curves(rows), paper_distances(message_rows)
+    if not curves:
+        return []
+    plt = _plt()
+    paths = []
+    for model, by in sorted(curves.items()):
+        fig, axes = plt.subplots(1, 2, figsize=(11, 4.6), squeeze=False)
+        for i, (label, (x, named, margin, n, _)) in enumerate(sorted(by.items())):
+            axes[0, 0].plot(100 * x, named, marker="o", color=f"C{i}", label=label)
+            axes[0, 1].plot(100 * x, margin, marker="o", color=f"C{i}")
+        ticks = sorted({round(100 * v, 4) for x, *_ in by.values() for v in x})
+        if min(abs(np.log(t / (100 * CHO_DISTANCE))) for t in ticks) > 0.05:     # no two labels on one spot
+            ticks = sorted([*ticks, 100 * CHO_DISTANCE])
+        for ax in axes[0]:
+            ax.axvline(100 * CHO_DISTANCE, color="grey", ls="--", lw=1)
+            if model in paper:
+                ax.axvline(100 * paper[model], color="grey", ls=":", lw=1)
+            ax.set_xscale("log")
+            ax.set_xticks(ticks)
+            ax.xaxis.set_major_formatter(plt.matplotlib.ticker.FormatStrFormatter("%.4f"))
+            ax.xaxis.set_minor_formatter(plt.matplotlib.ticker.NullFormatter())
+            ax.tick_params(axis="x", labelrotation=45, labelsize=8)
+            ax.grid(alpha=0.3, which="both")
+            ax.set_xlabel("MRMS distance to the surface (% of diagonal)")
+        axes[0, 0].set_ylim(-0.03, 1.03)
+        axes[0, 0].set_ylabel("share of trials with the leaker named")
+        axes[0, 1].axhline(0.0, color="black", lw=0.8)
+        axes[0, 1].set_ylabel("lowest leaker score - threshold (median)")
+        fig.suptitle(f"{model}: fingerprints against distance (dotted: the paper's embedding, dashed: Cho 0.012 %)",
+                     y=0.99, fontsize=10)
+        fig.legend(loc="upper center", ncol=3, fontsize=8, bbox_to_anchor=(0.5, 0.94))
+        fig.tight_layout(rect=(0, 0, 1, 0.8))
+        path = Path(folder) / f"fingerprint_rate_distortion_{model}.png"
+        fig.savefig(path, dpi=100)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+def fingerprint_rate_distortion_lines(rows, message_rows):
+    """Markdown: each fingerprint curve read at the paper's distance and at Cho's 0.012 %."""
+    curves, paper = fingerprint_curves(rows), paper_distances(message_rows)
+    table = []
+    for model, by in sorted(curves.items()):
+        for label, (x, named, margin, n, _) in sorted(by.items()):
+            at = [paper.get(model, float("nan")), CHO_DISTANCE]
+            table.append([model, label, int(n.min()), *[f"{_at((x, named), x0, READ_SLACK):.2f}, "
+                                                         f"{_at((x, margin), x0, READ_SLACK):+.2f}"
+                                                         if np.isfinite(x0) else "-" for x0 in at],
+                          f"{100 * x.min():.4f}-{100 * x.max():.4f}"])
+    if not table:
+        return []
+    return ["## Fingerprints against distance", "",
+            "Each curve is one fingerprint configuration with one detector, beta swept; distance is the MRMS "
+            "between the surfaces of one recipient's copy and the original. Read off each curve (linear in log "
+            "distance; within 2 % of its ends, the end point; 'nan' further out): the share of trials naming a "
+            "leaker, and the median margin of the lowest leaker score over the threshold, at the paper's distance (its embedding, beta 0.002, "
+            "xyz, on the same model) and at Cho et al.'s 0.012 % of the diagonal.", "",
+            _md_table(["model", "case, attack", "trials per point", "at the paper's distance", "at 0.012 %",
+                       "distances run (% diag)"], table), ""]
+
+
 def write_report(folder, rows, fp_rows, p_threshold, seconds, fingerprint_rows=()):
     """Write plots and summary.md into ``folder``."""
     folder = Path(folder)
     plots = [plot_attacks(rows, folder / "attacks.png"), plot_noise_curves(rows, folder / "noise_curves.png"),
              plot_false_positives(fp_rows, folder / "false_positives.png"),
-             *plot_rate_distortion(rows, folder)]
+             *plot_rate_distortion(rows, folder),
+             *plot_fingerprint_rate_distortion(list(fingerprint_rows), rows, folder)]
     lines = ["# pointmark evaluation", "",
              f"{len(rows)} trials in {seconds:.0f} s. BER = bit errors / payload bits; every attacked "
              "copy was shuffled before detection.", ""]
@@ -367,6 +468,7 @@ def write_report(folder, rows, fp_rows, p_threshold, seconds, fingerprint_rows=(
                   "uniform, so a threshold t should flag a fraction t of wrong keys.", "",
                   _md_table(["suspect", "keys", "p<0.1", "p<0.01", "p<0.001", f"p<{p_threshold:g}"], fp), ""]
     lines += fingerprint_lines(list(fingerprint_rows))
+    lines += fingerprint_rate_distortion_lines(list(fingerprint_rows), rows)
     lines += ["## Plots", ""] + [f"![{p.stem}]({p.name})" for p in plots if p is not None]
     (folder / "summary.md").write_text("\n".join(lines) + "\n")
     return folder / "summary.md"

@@ -210,6 +210,9 @@ def fingerprint_trial(model_path, handle, params, detect_params, chain_text, cas
         copies = np.stack([copy(fingerprint.signs(bank[j], length)[0]) for j in colluders])
         suspect = copies.mean(axis=0) if kind == "average" else copies[rng.integers(k, size=len(points)),
                                                                          np.arange(len(points))]
+    # the distance to the surface of one recipient's copy (copies differ only in their chips)
+    dist = _distortion_of(centred, copy(fingerprint.signs(bank[0], length)[0]),
+                          ("fingerprint", str(model_path), tuple(handle), params, material))
     t1 = time.perf_counter()
     attacked = apply_chain(suspect + ref.centre, parse_chain(chain_text) + [("shuffle", None)], rng=seed,
                            faces=cloud.faces())
@@ -222,7 +225,8 @@ def fingerprint_trial(model_path, handle, params, detect_params, chain_text, cas
     guilty = set(colluders.tolist())
     return {
         "model": Path(model_path).stem, "case": case, "colluders": int(k), "attack": chain_text, "seed": int(seed),
-        "n_recipients": n_recipients, "epsilon": detect_params.epsilon,
+        "n_recipients": n_recipients, "epsilon": detect_params.epsilon, "beta": params.beta,
+        "mrms_rel_diag": dist["mrms_rel_diag"], "msdm": dist["msdm"],
         "threshold": fingerprint.threshold(n_checked, detect_params.epsilon), "n_poses": 1 + len(est["other_poses"]),
         "accused_colluders": int(sum(a in guilty for a in accused.tolist())),
         "accused_innocents": int(sum(a not in guilty for a in accused.tolist())),
