@@ -14,10 +14,14 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-import pyarrow.parquet as pq
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from pipeline import threads  # noqa: E402  (one BLAS/OpenMP thread, before NumPy loads)
+
+threads.pin()
+
+import pyarrow.parquet as pq  # noqa: E402
 
 
 def main(folders):

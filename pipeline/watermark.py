@@ -768,9 +768,9 @@ def register(suspect, reference, spacing, detect_params, tree, normals=None, *, 
     poses : list, optional
         Filled with the other poses that fit about as well as the one
         returned: where the rotation search chose it, a part of a
-        near-symmetric shape (:func:`features.register_search`); where the
-        quick steps settled a whole copy, the copy turned about a
-        near-symmetry axis of the original (:func:`_turned_poses`).
+        near-symmetric shape (:func:`features.register_search`); and for
+        an original with a near-symmetry axis, the chosen pose turned about
+        it (:func:`_turned_poses`), for a whole copy and a part alike.
 
     Returns
     -------
@@ -824,7 +824,10 @@ def register(suspect, reference, spacing, detect_params, tree, normals=None, *, 
     search = placed is not None and features.needs_search(best, suspect, reference, spacing)
     times["quick"] = time.perf_counter() - t0
     if placed is not None and not search:     # the original, whole, on one of the suspect's objects
-        return features.polish(suspect, reference, best, spacing=spacing, normals=normals)
+        found = features.polish(suspect, reference, best, spacing=spacing, normals=normals)
+        if poses is not None:
+            _add_turns(poses, suspect, reference, found, spacing, tree)
+        return found
     if not deep:
         raise Undecided("the quick registration steps leave it undecided")
     t1 = time.perf_counter()
@@ -847,6 +850,7 @@ def register(suspect, reference, spacing, detect_params, tree, normals=None, *, 
             if best is searched:
                 if poses is not None:
                     poses.extend(others)
+                    _add_turns(poses, suspect, reference, searched, spacing, tree)
                 times["deep"] = time.perf_counter() - t1
                 return searched          # register_search ends with the polish already
             others = [searched, *others]     # the search's poses, beside another step's
@@ -854,6 +858,8 @@ def register(suspect, reference, spacing, detect_params, tree, normals=None, *, 
     found = features.polish(suspect, reference, best, spacing=spacing, normals=normals)
     if search and poses is not None and searched is not None:
         poses.extend(registration.poses_alike(suspect, tree, _coverage_sample(reference), found, others, spacing))
+    if poses is not None:
+        _add_turns(poses, suspect, reference, found, spacing, tree)
     times["deep"] = time.perf_counter() - t1
     return found
 
@@ -887,6 +893,14 @@ def _turned_poses(suspect, reference, found, spacing, tree, most=1500):
 
     alike = registration.poses_alike(sub, tree, sample, found, [refined(sub, s) for s in starts], spacing)
     return registration.distinct_poses(suspect, found, [refined(suspect, p) for p in alike], spacing)
+
+
+def _add_turns(poses, suspect, reference, found, spacing, tree):
+    """``poses`` with :func:`_turned_poses` of ``found`` added, distinct (in place)."""
+    turned = _turned_poses(suspect, reference, found, spacing, tree)
+    if turned:        # the tightest first, where there are more than MAX_POSES
+        poses[:] = registration.poses_alike(suspect, tree, _coverage_sample(reference), found, [*poses, *turned],
+                                            spacing)
 
 
 def _register_parts(suspect, reference, spacing, tree):
