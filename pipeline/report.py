@@ -193,6 +193,23 @@ def _at(curve, x0, slack=1e-9):
 READ_SLACK = np.log(1.02)   # a fingerprint curve within 2 % of a distance is read there (at its end point)
 
 
+def _distance_axis(plt, ax, ticks=None):
+    """A log x axis of MRMS (% of the diagonal), gridded; labelled at ``ticks`` where given."""
+    ax.set_xscale("log")
+    if ticks is not None:
+        ax.set_xticks(ticks)
+        ax.tick_params(axis="x", labelrotation=45, labelsize=8)
+    ax.xaxis.set_major_formatter(plt.matplotlib.ticker.FormatStrFormatter("%.3g" if ticks is None else "%.4f"))
+    ax.xaxis.set_minor_formatter(plt.matplotlib.ticker.NullFormatter())
+    ax.grid(alpha=0.3, which="both")
+
+
+def _save(plt, fig, path):
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
 def plot_rate_distortion(rows, folder):
     """BER and message error rate against MRMS, one figure per model, one column per attack."""
     curves = rate_distortion_curves(rows)
@@ -213,11 +230,8 @@ def plot_rate_distortion(rows, folder):
                 ax = axes[row, col]
                 if paper is not None:
                     ax.axvline(100 * _paper_distance(paper), color="grey", ls=":", lw=1)
-                ax.set_xscale("log")
-                ax.xaxis.set_major_formatter(plt.matplotlib.ticker.FormatStrFormatter("%.3g"))
-                ax.xaxis.set_minor_formatter(plt.matplotlib.ticker.NullFormatter())
+                _distance_axis(plt, ax)
                 ax.set_ylim(-0.03, 1.03 if row else 0.7)
-                ax.grid(alpha=0.3, which="both")
             axes[0, col].set_title(attack, fontsize=10)
             axes[1, col].set_xlabel("MRMS distance to the surface (% of diagonal)")
         axes[0, 0].set_ylabel("bit error rate")
@@ -227,10 +241,7 @@ def plot_rate_distortion(rows, folder):
         fig.suptitle(f"{model}: rate-distortion at equal detector (dotted: the paper's beta 0.002)", y=0.995,
                      fontsize=10)
         fig.tight_layout(rect=(0, 0, 1, 0.89))
-        path = Path(folder) / f"rate_distortion_{model}.png"
-        fig.savefig(path, dpi=100)
-        plt.close(fig)
-        paths.append(path)
+        paths.append(_save(plt, fig, Path(folder) / f"rate_distortion_{model}.png"))
     return paths
 
 
@@ -359,12 +370,7 @@ def plot_fingerprint_rate_distortion(rows, message_rows, folder):
             ax.axvline(100 * CHO_DISTANCE, color="grey", ls="--", lw=1)
             if model in paper:
                 ax.axvline(100 * paper[model], color="grey", ls=":", lw=1)
-            ax.set_xscale("log")
-            ax.set_xticks(ticks)
-            ax.xaxis.set_major_formatter(plt.matplotlib.ticker.FormatStrFormatter("%.4f"))
-            ax.xaxis.set_minor_formatter(plt.matplotlib.ticker.NullFormatter())
-            ax.tick_params(axis="x", labelrotation=45, labelsize=8)
-            ax.grid(alpha=0.3, which="both")
+            _distance_axis(plt, ax, ticks)
             ax.set_xlabel("MRMS distance to the surface (% of diagonal)")
         axes[0, 0].set_ylim(-0.03, 1.03)
         axes[0, 0].set_ylabel("share of trials with the leaker named")
@@ -374,10 +380,7 @@ def plot_fingerprint_rate_distortion(rows, message_rows, folder):
                      y=0.99, fontsize=10)
         fig.legend(loc="upper center", ncol=3, fontsize=8, bbox_to_anchor=(0.5, 0.94))
         fig.tight_layout(rect=(0, 0, 1, 0.8))
-        path = Path(folder) / f"fingerprint_rate_distortion_{model}.png"
-        fig.savefig(path, dpi=100)
-        plt.close(fig)
-        paths.append(path)
+        paths.append(_save(plt, fig, Path(folder) / f"fingerprint_rate_distortion_{model}.png"))
     return paths
 
 
@@ -398,7 +401,8 @@ def fingerprint_rate_distortion_lines(rows, message_rows):
             "Each curve is one fingerprint configuration with one detector, beta swept; distance is the MRMS "
             "between the surfaces of one recipient's copy and the original. Read off each curve (linear in log "
             "distance; within 2 % of its ends, the end point; 'nan' further out): the share of trials naming a "
-            "leaker, and the median margin of the lowest leaker score over the threshold, at the paper's distance (its embedding, beta 0.002, "
+            "leaker, and the median margin of the lowest leaker score over the threshold, at the paper's "
+            "distance (its embedding, beta 0.002, "
             "xyz, on the same model) and at Cho et al.'s 0.012 % of the diagonal.", "",
             _md_table(["model", "case, attack", "trials per point", "at the paper's distance", "at 0.012 %",
                        "distances run (% diag)"], table), ""]

@@ -871,7 +871,7 @@ MAX_PARTS = 3            # most parts registered whole, the most original-like f
 
 
 def _turned_poses(suspect, reference, found, spacing, tree, most=1500):
-    """Poses of a whole copy turned about the original's near-symmetry axes that fit as well as ``found``.
+    """Poses of the suspect turned about the original's near-symmetry axes that fit as well as ``found``.
 
     The principal frames of a near solid of revolution leave the turn about
     its axis open, and ICP settles wherever it starts: each turn of
@@ -896,9 +896,9 @@ def _turned_poses(suspect, reference, found, spacing, tree, most=1500):
 
 
 def _add_turns(poses, suspect, reference, found, spacing, tree):
-    """``poses`` with :func:`_turned_poses` of ``found`` added, distinct (in place)."""
+    """``poses`` with :func:`_turned_poses` of ``found`` added, the tightest :data:`registration.MAX_POSES` kept."""
     turned = _turned_poses(suspect, reference, found, spacing, tree)
-    if turned:        # the tightest first, where there are more than MAX_POSES
+    if turned:
         poses[:] = registration.poses_alike(suspect, tree, _coverage_sample(reference), found, [*poses, *turned],
                                             spacing)
 

@@ -162,10 +162,12 @@ def scores_over_poses(ys, bank):
         The highest score of each recipient.
     pose : (n_recipients,) int
         The index into ``ys`` where it was reached (the first on a tie).
+    table : (len(ys), n_recipients) float
+        Every score at every pose (for :func:`presence_over_poses`).
     """
     table = np.stack([scores(y, bank) for y in ys])
     pose = np.argmax(table, axis=0)
-    return table[pose, np.arange(table.shape[1])], pose
+    return table[pose, np.arange(table.shape[1])], pose, table
 
 
 def threshold(n_checked, epsilon):
@@ -234,6 +236,17 @@ def presence(s):
     if len(s) == 0:
         return 1.0
     return float(special.gammaincc(len(s) / 2.0, float(s @ s) / 2.0))
+
+
+def presence_over_poses(table):
+    """:func:`presence` of a mark at any of the poses read: the best pose's p, Bonferroni over the poses.
+
+    Parameters
+    ----------
+    table : (n_poses, n_recipients) float
+        The scores at each pose (:func:`scores_over_poses`); one pose gives :func:`presence` itself.
+    """
+    return min(1.0, len(table) * min(presence(s) for s in table))
 
 
 def observation(deltas, coverage, first, count):

@@ -650,7 +650,7 @@ POSE_RESIDUAL_TIE = 1.25   # and residual at most this times its residual
 POSE_APART = 3.0           # spacings: poses whose points lie closer than this (mean) are the same pose
 MAX_POSES = 32             # most poses kept beside the chosen one
 SYMMETRY_TIE = 0.93        # two principal spreads at least this alike: the third axis is near-symmetric
-AXIS_TURNS = 72            # turns about a near-symmetry axis tried from a whole copy's registration (5 degrees)
+AXIS_TURNS = 72            # turns about a near-symmetry axis tried from a registration (5 degrees)
 
 
 def poses_alike(points, tree, sample, chosen, poses, spacing):

@@ -194,19 +194,17 @@ def _score_group(ys, ref, params, rows, material, estimate):
     recipients = sorted({r["recipient"] for r in rows})
     bank = fingerprint.chip_bank(material, copy_label(rows[0]["asset_key"], rows[0]["generation"]), recipients,
                                  fingerprint_length(len(ref.specs), params))
-    s, pose = fingerprint.scores_over_poses(ys, bank)
+    s, pose, table = fingerprint.scores_over_poses(ys, bank)
     keep = np.union1d(np.argsort(-s, kind="stable")[:TOP], np.flatnonzero(s >= FLOOR))
     generations = defaultdict(list)
     for r in rows:
         generations[r["recipient"]].append((int(r["generation"]), r["output_path"]))
     poses = [estimate, *estimate.get("other_poses", ())]
-    # a mark at any pose: the best pose's chi-square, Bonferroni over the poses
-    presence = min(1.0, len(ys) * min(fingerprint.presence(fingerprint.scores(y, bank)) for y in ys)) \
-        if len(ys) > 1 else fingerprint.presence(s)
     return {
         "asset_key": rows[0]["asset_key"], "key_id": rows[0]["key_id"], "reference_key": rows[0]["reference_key"],
         "generation": int(rows[0]["generation"]), "reference": reference_record(rows[0]),
-        "n_recipients": len(recipients), "n_poses": len(ys), "presence_p": presence,
+        "n_recipients": len(recipients), "n_poses": len(ys),
+        "presence_p": fingerprint.presence_over_poses(table),
         "best": [{"recipient": recipients[i], "score": float(s[i]), "copies": sorted(generations[recipients[i]]),
                   "pose": int(pose[i]), "registration": poses[pose[i]]["registration"],
                   "cluster_scores": (fingerprint.cluster_scores(ys[pose[i]], fingerprint.signs(bank[i], len(ys[0]))[0],

@@ -218,8 +218,8 @@ def fingerprint_trial(model_path, handle, params, detect_params, chain_text, cas
                            faces=cloud.faces())
     est = estimate_differences(attacked - ref.centre, centred, ref.specs, ref.bases, detect_params,
                                params, every_pose=True, **ref.detection_aids())
-    s, _ = fingerprint.scores_over_poses(fingerprint_observations(est, ref.specs, params), bank)
-    n_checked = n_recipients * (1 + len(est["other_poses"]))      # every pose read tests every recipient
+    s, _, table = fingerprint.scores_over_poses(fingerprint_observations(est, ref.specs, params), bank)
+    n_checked = n_recipients * len(table)      # every pose read tests every recipient
     accused, _ = fingerprint.accuse(s, n_checked, detect_params.epsilon)
     innocent = np.setdiff1d(np.arange(n_recipients), colluders)
     guilty = set(colluders.tolist())
@@ -227,7 +227,7 @@ def fingerprint_trial(model_path, handle, params, detect_params, chain_text, cas
         "model": Path(model_path).stem, "case": case, "colluders": int(k), "attack": chain_text, "seed": int(seed),
         "n_recipients": n_recipients, "epsilon": detect_params.epsilon, "beta": params.beta,
         "mrms_rel_diag": dist["mrms_rel_diag"], "msdm": dist["msdm"],
-        "threshold": fingerprint.threshold(n_checked, detect_params.epsilon), "n_poses": 1 + len(est["other_poses"]),
+        "threshold": fingerprint.threshold(n_checked, detect_params.epsilon), "n_poses": len(table),
         "accused_colluders": int(sum(a in guilty for a in accused.tolist())),
         "accused_innocents": int(sum(a not in guilty for a in accused.tolist())),
         "min_colluder_score": float(s[colluders].min()) if k else float("nan"),

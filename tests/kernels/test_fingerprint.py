@@ -97,11 +97,14 @@ def test_the_best_score_over_poses_is_each_recipients_maximum_and_keeps_the_boun
     n, length, poses = 2000, 480, 8
     bank = fp.chip_bank(MATERIAL, "sym", [f"r{i}" for i in range(n)], length)
     ys = [rng.normal(size=length) for _ in range(poses)]
-    best, pose = fp.scores_over_poses(ys, bank)
-    table = np.stack([fp.scores(y, bank) for y in ys])
+    best, pose, table = fp.scores_over_poses(ys, bank)
+    assert np.array_equal(table, np.stack([fp.scores(y, bank) for y in ys]))
     assert np.array_equal(best, table.max(axis=0)) and np.array_equal(table[pose, np.arange(n)], best)
-    one, at = fp.scores_over_poses(ys[:1], bank)
+    one, at, _ = fp.scores_over_poses(ys[:1], bank)
     assert np.array_equal(one, fp.scores(ys[0], bank)) and not at.any()
+    # a mark at any pose: one pose is presence itself, more the best pose's p times their number
+    assert fp.presence_over_poses(table[:1]) == fp.presence(table[0])
+    assert fp.presence_over_poses(table) == min(1.0, poses * min(fp.presence(s) for s in table))
     # the maximum of 8 poses exceeds t as often as 8 tests can, never more: count every pose
     for t in (2.0, 2.5, 3.0):
         assert (best >= t).mean() <= poses * np.exp(-t * t / 2)
