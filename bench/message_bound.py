@@ -1,10 +1,11 @@
 """The coded message after noise: the detector against an oracle that knows every point's match (issue 39, item 2).
 
-``python bench/message_bound.py [NOISE ...]`` (default 1 %; about 20 minutes on one core).
+``python bench/message_bound.py [NOISE ...]`` (default 1 %, one core).  ``BOUND_MODELS``
+(comma-separated stems) and ``BOUND_SEEDS`` (a count) narrow the run.
 For every non-LiDAR scan of ``../shared/data/models`` with at least 10,000
 points, the default configuration (normal displacement, beta 0.00115,
 convolutional code, clusters covering the asset at the paper's distance)
-embeds the evaluation's message once; each seed (8) adds uniform noise of
+embeds the evaluation's message once; each seed (``SEEDS``) adds uniform noise of
 ``NOISE`` phi per coordinate (``ROBUSTNESS.md``) and reads the message twice:
 
 - ``detector``: the copy shuffled and read as ``pointmark evaluate`` reads it
@@ -38,7 +39,7 @@ DATA = Path(os.environ.get("POINTMARK_TEST_DATA", ROOT.parent / "shared" / "data
 WORK = ROOT / "bench" / "results" / "message_bound"
 MODELS = ["bunny_zipper_faceref_34834", "bunny_rangescan_bun000_40256", "nikolov_birdbath_18793",
           "nikolov_blackvase_17337", "kitten_12623", "nikolov_owl_12442", "pcl_tum_rabbit_10429"]
-SEEDS = range(8)
+SEEDS = 8
 SECRET = b"message-bound-bench-secret-0001"
 
 
@@ -95,7 +96,7 @@ def run(noises):
         centred = points - ref.centre
         marked = embed_with_bases(centred, ref.specs, ref.bases, material, bits, params, ref.phi)
         for noise in noises:
-            for seed in range(int(os.environ.get("BOUND_SEEDS", len(SEEDS)))):
+            for seed in range(int(os.environ.get("BOUND_SEEDS", SEEDS))):
                 if (model, noise, seed) in done:
                     continue
                 noisy = surface.apply_chain(marked, [("noise", noise)], rng=seed)     # order kept
