@@ -1,7 +1,11 @@
 """The coded message after noise: the detector against an oracle that knows every point's match (issue 39, item 2).
 
 ``python bench/message_bound.py [NOISE ...]`` (default 1 %, one core).  ``BOUND_MODELS``
-(comma-separated stems) and ``BOUND_SEEDS`` (a count) narrow the run.
+(comma-separated stems) and ``BOUND_SEEDS`` (a count) narrow the run; ``BOUND_SET``
+(``NAME=VALUE`` overrides joined by ``;``, as ``--set`` takes them) changes the
+configuration, e.g. ``watermark.chip_rate=3;watermark.beta=0.0021`` (the lowest
+96 coefficients at the default's distance to the surface); each row records
+the overrides and the copy's MRMS.
 For every non-LiDAR scan of ``../shared/data/models`` with at least 10,000
 points, the default configuration (normal displacement, beta 0.00115,
 convolutional code, clusters covering the asset at the paper's distance)
@@ -78,26 +82,29 @@ def run(noises):
     from pipeline.kernels import keys
     from pipeline.io.pointcloud import read_points
     from pipeline.orchestrate import evaluate
-    from pipeline.watermark import decode, embed_with_bases, estimate_differences
+    from pipeline.watermark import band_for, decode, distortion, embed_with_bases, estimate_differences
 
     WORK.mkdir(parents=True, exist_ok=True)
     rows_path = WORK / "rows.jsonl"
-    done = {(r["model"], r["noise"], r["seed"]) for r in map(json.loads, rows_path.open())} \
+    done = {(r["model"], r["noise"], r["seed"], tuple(r.get("sets", ()))) for r in map(json.loads, rows_path.open())} \
         if rows_path.exists() else set()
-    cfg = config.load_config(None)
-    params, dparams = config.watermark_params(cfg), config.detect_params(cfg)
+    sets = [s for s in os.environ.get("BOUND_SET", "").split(";") if s]
+    cfg = config.load_config(None, sets)
+    base_params, dparams = config.watermark_params(cfg), config.detect_params(cfg)
     material = keys.derive_key_material(SECRET, "evaluation")
-    bits = evaluate._message_bits(params)
+    bits = evaluate._message_bits(base_params)
     for model in os.environ.get("BOUND_MODELS", ",".join(MODELS)).split(","):
         path = DATA / f"{model}.ply"
         points = read_points(path).points
+        params = band_for(base_params, points)          # the asset's band when band_noise is set
         handle = evaluate.prepare_bases(path, evaluate._basis_params(params, params.n_coefficients), WORK / "bases")
         ref = evaluate._stored_reference(handle, points, params)
         centred = points - ref.centre
         marked = embed_with_bases(centred, ref.specs, ref.bases, material, bits, params, ref.phi)
+        mrms = distortion(centred, marked)["mrms_rel_diag"]
         for noise in noises:
             for seed in range(int(os.environ.get("BOUND_SEEDS", SEEDS))):
-                if (model, noise, seed) in done:
+                if (model, noise, seed, tuple(sets)) in done:
                     continue
                 noisy = surface.apply_chain(marked, [("noise", noise)], rng=seed)     # order kept
                 shuffled = noisy[np.random.default_rng(seed).permutation(len(noisy))]
@@ -107,7 +114,9 @@ def run(noises):
                 oracle = {**estimate, "support": [len(s.members) for s in ref.specs],
                           "deltas": oracle_deltas(noisy, centred, ref.model_normals, ref.specs, ref.bases, dparams.ridge)}
                 known = decode(oracle, ref.specs, material, params, dparams)
-                row = {"model": model, "noise": noise, "seed": seed, "clusters": len(ref.specs),
+                row = {"model": model, "noise": noise, "seed": seed, "sets": sets, "mrms_rel_diag": mrms,
+                       "chip_rate": params.chip_rate,
+                       "clusters": len(ref.specs),
                        "detector_errors": int((np.asarray(read["bits"]) != bits).sum()),
                        "detector_min_score": float(np.min(np.abs(read["bit_scores"]))),
                        "oracle_errors": int((np.asarray(known["bits"]) != bits).sum()),
@@ -121,13 +130,13 @@ def run(noises):
 
 def summary(rows_path):
     rows = [json.loads(line) for line in rows_path.open()]
-    print("| model | noise | clusters | detector: 0 errors / seeds, median errors | oracle: 0 errors / seeds, "
-          "median errors |\n|---|---|---:|---|---|")
-    for key in sorted({(r["model"], r["noise"]) for r in rows}):
-        cell = [r for r in rows if (r["model"], r["noise"]) == key]
+    print("| model | overrides | noise | clusters | detector: 0 errors / seeds, median errors | oracle: 0 errors / seeds, "
+          "median errors |\n|---|---|---|---:|---|---|")
+    for key in sorted({(r["model"], ";".join(r.get("sets", ())), r["noise"]) for r in rows}):
+        cell = [r for r in rows if (r["model"], ";".join(r.get("sets", ())), r["noise"]) == key]
         det = [r["detector_errors"] for r in cell]
         orc = [r["oracle_errors"] for r in cell]
-        print(f"| {key[0]} | {key[1]:.2%} | {cell[0]['clusters']} | {sum(e == 0 for e in det)}/{len(det)}, "
+        print(f"| {key[0]} | {key[1] or 'none'} | {key[2]:.2%} | {cell[0]['clusters']} | {sum(e == 0 for e in det)}/{len(det)}, "
               f"{np.median(det):g} | {sum(e == 0 for e in orc)}/{len(orc)}, {np.median(orc):g} |")
 
 

@@ -29,7 +29,8 @@ from .io.pointcloud import InputError, check_distinct, check_output, read_points
 from .io.secrets import SecretError, check_key_id, load_secret
 from .kernels import keys, modulation
 from .orchestrate.reference import build_reference
-from .watermark import ReferenceMismatch, WatermarkError, detect_reference, distortion, embed_reference, params_record
+from .watermark import (ReferenceMismatch, WatermarkError, band_for, detect_reference, distortion, embed_reference,
+                        params_record)
 
 log = logging.getLogger("pointmark")
 
@@ -219,7 +220,7 @@ def cmd_embed(args):
 def _asset_params(cfg, cloud):
     """The config's parameters for this file (auto resolved for survey data); exit 2 naming it when none fit."""
     try:
-        return config_mod.watermark_params(cfg, cloud.units())
+        return band_for(config_mod.watermark_params(cfg, cloud.units()), cloud.points)
     except ValueError as exc:
         raise InputError(f"{cloud.path}: {exc}") from None
 

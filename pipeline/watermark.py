@@ -28,6 +28,7 @@ __all__ = [
     "fingerprint_displacement", "cluster_amplitude", "budget_share",
     "capped", "mark_reach", "cluster_fingerprint", "check_count", "check_digest",
     "fingerprint_observation", "ReferenceMismatch", "params_record", "params_from_record", "ADDED_LATER",
+    "band_for",
 ]
 
 
@@ -235,6 +236,44 @@ def fingerprint_observation(estimate, specs, params):
 def fingerprint_observations(estimate, specs, params):
     """The observation y at the chosen pose, then at each other pose that fits as well (``other_poses``)."""
     return [fingerprint_observation(e, specs, params) for e in [estimate, *estimate.get("other_poses", ())]]
+
+
+def band_for(params, points):
+    """The parameters this asset is marked with when ``band_noise`` sizes its band, else ``params``.
+
+    The chip rate is the largest at most ``chip_rate`` (and at least what the
+    code needs) whose band, the lowest ``total_bits * chip rate``
+    coefficients of a cluster of ``cluster_size`` points, keeps ``band_gain``
+    under noise of ``band_noise`` phi (:func:`kernels.spectral.surviving_band`;
+    uniform noise in [-a, a] moves a point a / sqrt(3) along each tangent
+    axis).  beta rises by sqrt(chip_rate / chip rate), so each copy moves as
+    far as at ``chip_rate``.  The result has ``band_noise`` None: records
+    hold what acted.  Large assets planned by cells (``tile_points``) and
+    amplitude per cluster keep ``chip_rate``.
+
+    Parameters
+    ----------
+    params : WatermarkParams
+    points : (n, 3) float, the original
+
+    Returns
+    -------
+    WatermarkParams
+    """
+    if params.band_noise is None:
+        return params
+    fixed = replace(params, band_noise=None)
+    if params.tile_points is not None or params.amplitude != "model":
+        return fixed
+    phi = float(np.ptp(points, axis=0).max())
+    spacing = float(np.median(resampling.nearest_spacing(points)))
+    if phi == 0.0 or spacing == 0.0:
+        return fixed                       # frame_of refuses such an asset with its reason
+    band = spectral.surviving_band(min(params.cluster_size, len(points)), spacing,
+                                   params.band_noise * phi / np.sqrt(3.0), params.band_gain)
+    least = -(-coding.coded_length(params.total_bits, params.code) // params.total_bits)
+    rate = int(min(params.chip_rate, max(least, (band - params.first_coefficient) // params.total_bits)))
+    return replace(fixed, chip_rate=rate, beta=params.beta * float(np.sqrt(params.chip_rate / rate)))
 
 
 def frame_of(points):
@@ -1000,7 +1039,7 @@ def params_record(params):
 # parameters added after records began, with what a record written before them meant (never the
 # current default: an old row keeps the parameters it was issued under)
 ADDED_LATER = {"amplitude": "model", "max_displacement": None, "tile_points": None, "code": "repetition",
-               "cover_amplitude": "full"}
+               "cover_amplitude": "full", "band_noise": None, "band_gain": 0.6}
 
 
 def params_from_record(record):

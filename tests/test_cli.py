@@ -233,3 +233,18 @@ def test_detect_original_keeps_its_reference_in_a_store_and_checks_it(tmp_path, 
     err = capsys.readouterr().err
     assert "reference mismatch: cluster 0 spectral basis" in err and len(err.strip().splitlines()) == 1
     assert len(digests["basis"]) == 3          # clusters of 1,200 cover the 3,000 points
+
+
+def test_a_band_sized_for_noise_is_recorded_as_it_acted_and_read_back(tmp_path, secret_env, capsys):
+    # 8,000 points: noise of 1 % is about 2 spacings, so clusters of 1,500 take a narrower band
+    model = _ply(tmp_path / "dense.ply", sphere_patch(8000, rng=5))
+    sets = [*SMALL, "--set", "cluster_size=1500", "--set", "band_noise=0.01"]
+    assert _embed(model, tmp_path / "out.ply", *sets, "--json") == 0
+    res = json.loads(capsys.readouterr().out)
+    rate = res["params"]["chip_rate"]
+    assert 3 <= rate < 10 and res["params"]["band_noise"] is None
+    assert res["params"]["beta"] == pytest.approx(0.00115 * np.sqrt(10 / rate), rel=0.01)
+    assert main(["detect", str(tmp_path / "out.ply"), "--original", str(model), "--key-id", "k", "--json",
+                 *sets]) == 0
+    det = json.loads(capsys.readouterr().out)
+    assert det["detected"] and det["message"] == "c0ffee"

@@ -148,3 +148,36 @@ def test_covering_clusters_move_the_model_as_far_as_the_papers_clusters(referenc
     assert rms(PARAMS, specs, bases) > 1.2 * paper          # alpha in every cluster: farther from the surface
     assert watermark.params_record(shared)["cover_amplitude"] == "paper"
     assert watermark.params_record(replace(shared, tile_points=4000))["cover_amplitude"] == "full"   # as it acts
+
+
+def test_a_band_sized_for_noise_changes_only_dense_assets_and_keeps_the_distance():
+    from tests.conftest import sphere_patch
+
+    sparse, dense = sphere_patch(3000), sphere_patch(21000)
+    fixed = WatermarkParams(cluster_size=1500, cover=False, n_clusters=2)
+    assert watermark.band_for(fixed, dense) is fixed                      # band_noise None: the paper's c
+    sized = replace(fixed, band_noise=0.01)
+    assert watermark.band_for(sized, sparse) == fixed                     # 1 % noise under 2 spacings
+    got = watermark.band_for(sized, dense)
+    assert 3 <= got.chip_rate < fixed.chip_rate and got.band_noise is None
+    assert got.beta == pytest.approx(fixed.beta * np.sqrt(fixed.chip_rate / got.chip_rate))
+    assert watermark.band_for(replace(got, band_noise=0.01), dense) == got    # idempotent
+    # the same root mean square motion: a copy at the asset's band is as far from the original
+    ref_full, ref_band = (watermark.compute_reference(dense, p) for p in (fixed, got))
+    material = keys.derive_key_material(b"band-test-secret-0001", "band")
+    rms = []
+    for ref, p in ((ref_full, fixed), (ref_band, got)):
+        bits = np.random.default_rng(0).integers(0, 2, p.total_bits)
+        moved = watermark.embed_reference(dense, ref, material, bits, p)
+        rms.append(float(np.sqrt(((moved - dense) ** 2).sum(axis=1).mean())))
+    assert rms[1] == pytest.approx(rms[0], rel=0.1)
+
+
+def test_the_dense_range_scan_alone_gets_a_narrower_band(shared_data):
+    from pipeline.io.pointcloud import read_points
+
+    sized = WatermarkParams(band_noise=0.01)
+    rates = {name: watermark.band_for(sized, read_points(shared_data / "models" / f"{name}.ply").points).chip_rate
+             for name in ("bunny_rangescan_bun000_40256", "bunny_zipper_faceref_34834", "nikolov_birdbath_18793")}
+    assert rates == {"bunny_rangescan_bun000_40256": 3, "bunny_zipper_faceref_34834": 10,
+                     "nikolov_birdbath_18793": 10}

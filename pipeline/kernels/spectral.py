@@ -33,7 +33,7 @@ import scipy.linalg as sl
 import scipy.sparse as sp
 from scipy.sparse.linalg import ArpackNoConvergence, LinearOperator, eigsh, splu
 
-__all__ = ["spectral_basis", "canonicalize", "probe_vector"]
+__all__ = ["spectral_basis", "canonicalize", "probe_vector", "surviving_band"]
 
 DENSE_BELOW = 800       # clusters smaller than this use dense eigh
 GUARD = 8               # extra vectors so a degenerate space at the cut is whole
@@ -43,6 +43,41 @@ SLICE = 96              # eigenvalues per slice of the band
 ORTHO_TOL = 1e-9        # largest |V^T V - I| accepted from vectors of separate slices
 RESIDUAL_TOL = 1e-8     # largest ||K v - lambda v|| accepted, relative to max(1, lambda_max)
 PIVOT = 0.01            # SuperLU keeps the diagonal pivot unless 100x smaller than its column's largest
+
+
+def surviving_band(cluster_points, spacing, noise, gain):
+    """How many of a cluster's lowest eigenvectors keep ``gain`` of their amplitude under noise.
+
+    Noise that moves the points across the surface (standard deviation
+    ``noise`` per tangent axis) makes every suspect point stand for an
+    original point about that far away: the mark's field is blurred by a
+    Gaussian, which keeps exp(-lambda noise^2 / 2) of an eigenvector of
+    eigenvalue lambda (of the surface's Laplace-Beltrami operator).  Weyl's
+    law puts the k-th eigenvalue of a patch of area A near 4 pi k / A; a
+    cluster of n_c points at median spacing s covers about n_c s^2.  So the
+    eigenvectors below
+
+        K = ln(1 / gain) n_c s^2 / (2 pi noise^2)
+
+    keep at least ``gain``.
+
+    Parameters
+    ----------
+    cluster_points : int
+        n_c, points per cluster.
+    spacing : float
+        s, median distance to the nearest point.
+    noise : float
+        Standard deviation of the motion along one tangent axis (same units).
+    gain : float
+        In (0, 1).
+
+    Returns
+    -------
+    float
+        K (not rounded).
+    """
+    return float(np.log(1.0 / gain) * cluster_points * spacing**2 / (2.0 * np.pi * noise**2))
 
 
 def probe_vector(n, salt):

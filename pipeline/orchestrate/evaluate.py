@@ -23,8 +23,8 @@ from .. import config as config_mod
 from ..io.pointcloud import atomic_write_bytes, read_points, units_of
 from ..kernels import fingerprint, keys, modulation
 from ..surface import apply_chain, parse_attack
-from ..watermark import (decode, distortion, embed_with_bases, estimate_differences, fingerprint_displacement,
-                         fingerprint_length, fingerprint_observations)
+from ..watermark import (band_for, decode, distortion, embed_with_bases, estimate_differences,
+                         fingerprint_displacement, fingerprint_length, fingerprint_observations)
 from .reference import build_reference, load_reference
 
 __all__ = ["run_evaluation", "parse_chain", "trial", "prepare_bases", "load_bases", "fingerprint_trial",
@@ -281,6 +281,7 @@ def _prep_key(model, params):
 def _cells(cfg, collusion):
     """(experiment, model, params, chain, repetitions) of the message or of the fingerprint experiments."""
     ev = cfg["evaluate"]
+    originals = {}
     for exp in ev["experiments"]:
         if bool(exp.get("collusion")) != collusion:
             continue
@@ -288,6 +289,10 @@ def _cells(cfg, collusion):
             for overrides in exp.get("parameters") or [{}]:
                 params = config_mod.watermark_params({"watermark": {**cfg["watermark"], **overrides}},
                                                      units_of(model))    # survey data: the rule embed uses
+                if params.band_noise is not None:         # the band follows the model's sampling
+                    if model not in originals:
+                        originals[model] = read_points(model).points
+                    params = band_for(params, originals[model])
                 try:                    # fail before any work, not in every trial
                     config_mod.check_code(params)
                 except ValueError as exc:

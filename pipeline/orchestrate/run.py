@@ -39,10 +39,10 @@ from ..io.basis_store import BasisStore
 from ..io.catalog import check_recipient, discover_assets
 from ..io.ledger import Ledger, LedgerError, mac_ok
 from ..io.paths import check_apart, check_disjoint, copy_path, pending_path, source_folders
-from ..io.pointcloud import InputError, sha256_file, units_of
+from ..io.pointcloud import InputError, read_points, sha256_file, units_of
 from ..io.secrets import without_secret_env
 from ..kernels import keys
-from ..watermark import ADDED_LATER, params_record
+from ..watermark import ADDED_LATER, band_for, params_record
 from . import tasks
 from .progress import Progress
 
@@ -222,6 +222,8 @@ def _plan_asset(job, asset, recipients, rows, out_dir, force):
     units = units_of(asset.path)
     try:
         item.params = watermark_params(job.cfg, units)
+        if item.params.band_noise is not None:     # the band follows the asset's sampling
+            item.params = band_for(item.params, read_points(asset.path).points)
     except ValueError as exc:                        # no parameters for this asset: a failed row, not a stop
         item.error, item.params = f"{asset.path}: {exc}", job.params
         item.items = [(r, None) for r in recipients]

@@ -159,3 +159,27 @@ def test_basis_is_identical_across_processes_and_thread_counts(tmp_path):
         outs.append(np.load(out))
     assert outs[0].shape == (4000, 320)
     assert np.abs(outs[0] - outs[1]).max() < 1e-8
+
+
+def test_the_surviving_band_keeps_its_gain_under_tangential_noise():
+    # a flat 50 x 50 grid of spacing 1: move every point across the surface by Gaussian noise and
+    # read each eigenvector at the nearest original point, as a detector of a noisy copy does
+    rng = np.random.default_rng(3)
+    g = np.stack(np.meshgrid(np.arange(50.0), np.arange(50.0)), -1).reshape(-1, 2)
+    pts = np.column_stack([g, np.zeros(len(g))])
+    a, _ = connect_components(pts, radius_graph(pts, valence_radius(pts, 12)))
+    noise = 1.0
+    band = spectral.surviving_band(len(pts), 1.0, noise, 0.6)
+    assert 150 < band < 260                                  # ln(1/0.6) 2500 / (2 pi)
+    _, basis = spectral_basis(laplacian(a), int(2 * band) + 10)
+    from scipy.spatial import cKDTree
+    tree = cKDTree(g)
+    near = np.concatenate([tree.query(g + rng.normal(0.0, noise, g.shape))[1] for _ in range(4)])
+    source = np.tile(np.arange(len(g)), 4)
+    gain = (basis[source] * basis[near]).sum(axis=0) / (basis[source] ** 2).sum(axis=0)
+
+    def around(k):
+        return float(np.mean(gain[int(k) - 10:int(k) + 10]))
+
+    assert 0.45 < around(band) < 0.8, around(band)
+    assert around(band / 2) > around(band) + 0.1 and around(2 * band) < around(band) - 0.1

@@ -131,6 +131,30 @@ def test_a_changed_parameter_starts_generation_2_and_generation_1_stays_attribut
     assert result["n_checked"] == 4       # 2 recipients x 2 generations (references differ in nothing but beta)
 
 
+def test_a_band_sized_for_noise_is_issued_recorded_and_attributed_from_the_ledger(tmp_path):
+    # a dense asset (8,000 points, noise of 1 % about 2 spacings) takes a narrower band; the ledger
+    # keeps the chip rate and beta it was marked with, and detection reads them from there alone
+    from pipeline.kernels import attacks
+    from pipeline.orchestrate.detect import detect_from_ledger
+    from pipeline.io.pointcloud import read_points
+    from tests.conftest import sphere_patch
+
+    write_array(tmp_path / "assets", "dense", sphere_patch(8000, rng=6) * 10, "ply")
+    cfg = write_config(tmp_path, tmp_path / "assets",
+                       extra={"watermark": {"n_bits": 32, "band_noise": 0.01}})
+    job, counts = _run(cfg, serial=True)
+    assert counts["ok"] == 1
+    params = [json.loads(r["params_json"]) for r in _rows(job)]
+    assert {(p["chip_rate"], p["band_noise"]) for p in params} == {(params[0]["chip_rate"], None)}
+    assert 3 <= params[0]["chip_rate"] < 10
+    leak = attacks.apply_chain(read_points(tmp_path / "out" / "marked" / "bob" / "dense.ply").points,
+                               [("noise", 0.005), ("random_similarity", None), ("shuffle", None)], 3)
+    write_array(tmp_path, "leak", leak, "ply")
+    result = detect_from_ledger(tmp_path / "leak.ply", job.manifests, SECRET.encode(),
+                                config.detect_params(config.load_config(cfg)))
+    assert result["verdict"] == "match" and [a["recipient"] for a in result["accused"]] == ["bob"]
+
+
 def test_two_concurrent_runs_lose_no_row(tmp_path):
     src = make_catalogue(tmp_path / "assets", n_assets=3)
     cfg = write_config(tmp_path, src)
