@@ -132,14 +132,15 @@ WATERMARK = _section("Embedding parameters (paper, section 2.2).", {
                "Channel code of the payload: repetition (the paper: each bit on c chips) or "
                "convolutional (rate 1/2, K = 7, the same m x c chips over the coded word, soft "
                "max-log-MAP decoding; needs chip_rate >= 3 for 32 bits)."),
-    "band_noise": _p(("number", "null"), None,
+    "band_noise": _p(("number", "null"), 0.01,
                      "Size the spectral band of each asset for this noise (fraction of phi, as the "
                      "noise attack of ROBUSTNESS.md): the chip rate drops below chip_rate, down to what "
                      "the code needs, until the band's highest coefficient keeps band_gain of its "
                      "amplitude once noise of this size has moved the points across the surface; beta "
                      "rises by sqrt(chip_rate / the asset's), so each copy moves as far.  Only dense "
-                     "scans change (noise over about 2 point spacings).  null: every asset uses "
-                     "chip_rate (the paper).", exclusiveMinimum=0, maximum=1),
+                     "scans change (noise over about 2 point spacings).  0.01: the heaviest noise of "
+                     "ROBUSTNESS.md.  null: every asset uses chip_rate (the paper).",
+                     exclusiveMinimum=0, maximum=1),
     "band_gain": _p("number", 0.6, "Share of its amplitude the band's highest coefficient keeps at band_noise.",
                     exclusiveMinimum=0, exclusiveMaximum=1),
 })

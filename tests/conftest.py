@@ -80,7 +80,7 @@ SMALL_WATERMARK = {
     "n_bits": 16, "chip_rate": 10, "beta": 0.002, "valence": 12, "n_clusters": 2, "cluster_size": 1200,
     "seeds": None, "on_touch": "skip", "cover": False, "chip_layout": "consecutive", "first_coefficient": 0,
     "crc_bits": 0, "displacement": "xyz", "amplitude": "model", "max_displacement": None, "tile_points": None,
-    "code": "repetition",
+    "code": "repetition", "band_noise": None,
 }
 
 # The registration's effort in those bookkeeping worlds, about a tenth of the default (a sixth of the

@@ -44,7 +44,7 @@ SUSPECTS = {
 WATERMARK = {"n_bits": 32, "chip_rate": 10, "beta": 0.002, "valence": 12, "n_clusters": 2, "cluster_size": 2000,
              "seeds": None, "on_touch": "skip", "cover": False, "chip_layout": "consecutive", "first_coefficient": 0,
              "crc_bits": 0, "displacement": "xyz", "amplitude": "model", "max_displacement": None,
-             "tile_points": None, "code": "repetition"}
+             "tile_points": None, "code": "repetition", "band_noise": None}
 
 
 @pytest.fixture(scope="module")

@@ -154,7 +154,7 @@ def test_a_band_sized_for_noise_changes_only_dense_assets_and_keeps_the_distance
     from tests.conftest import sphere_patch
 
     sparse, dense = sphere_patch(3000), sphere_patch(21000)
-    fixed = WatermarkParams(cluster_size=1500, cover=False, n_clusters=2)
+    fixed = WatermarkParams(cluster_size=1500, cover=False, n_clusters=2, band_noise=None)
     assert watermark.band_for(fixed, dense) is fixed                      # band_noise None: the paper's c
     sized = replace(fixed, band_noise=0.01)
     assert watermark.band_for(sized, sparse) == fixed                     # 1 % noise under 2 spacings
