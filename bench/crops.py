@@ -77,12 +77,13 @@ def _configs(path, points, default, material, names=("seeds", "cover")):
     (``cover_amplitude: paper``): the seeds embedding's distance to the surface.  ``beta`` is the
     ratio each cluster is marked at (the configured one times :func:`watermark.budget_share`).
     """
-    from pipeline.watermark import budget_share
+    from pipeline.watermark import band_for, budget_share
 
     out = {}
     for name, params in (("seeds", replace(default, cover=False)), ("cover", default)):
         if name not in names:
             continue
+        params = band_for(params, points)                 # the asset's band, as a catalogue run marks it
         handle, ref = _reference(path, points, params)
         beta = params.beta * budget_share(params, len(ref.specs))
         out[name] = (params, handle, beta, *_mrms(ref, points, params, material))
@@ -101,16 +102,18 @@ def distance(copies=3):
     from pipeline import config
     from pipeline.io.pointcloud import read_points
     from pipeline.kernels import keys
+    from pipeline.watermark import band_for
 
     default = config.watermark_params(config.load_config(None))
     paper = replace(default, cover=False, beta=0.002, displacement="xyz", chip_layout="consecutive",
-                    code="repetition")
+                    code="repetition", band_noise=None)
     materials = [keys.derive_key_material(SECRET, f"distance-{i}") for i in range(copies)]
     for model in DISTANCE_MODELS:
         path = DATA / "models" / f"{model}.ply"
         points = read_points(path).points
         mean = {}
         for name, params in (("paper", paper), ("seeds", replace(default, cover=False)), ("cover", default)):
+            params = band_for(params, points)
             _, ref = _reference(path, points, params)
             mean[name] = (np.mean([_mrms(ref, points, params, m)[0] for m in materials]), len(ref.specs))
         print(f"{model}: MRMS over the paper's, covering {mean['cover'][0] / mean['paper'][0]:.3f} "

@@ -28,7 +28,7 @@ __all__ = [
     "fingerprint_displacement", "cluster_amplitude", "budget_share",
     "capped", "mark_reach", "cluster_fingerprint", "check_count", "check_digest",
     "fingerprint_observation", "ReferenceMismatch", "params_record", "params_from_record", "ADDED_LATER",
-    "band_for",
+    "band_for", "band_applies",
 ]
 
 
@@ -238,6 +238,11 @@ def fingerprint_observations(estimate, specs, params):
     return [fingerprint_observation(e, specs, params) for e in [estimate, *estimate.get("other_poses", ())]]
 
 
+def band_applies(params):
+    """Whether :func:`band_for` needs the asset's points (else ``chip_rate`` stands)."""
+    return params.band_noise is not None and params.tile_points is None and params.amplitude == "model"
+
+
 def band_for(params, points):
     """The parameters this asset is marked with when ``band_noise`` sizes its band, else ``params``.
 
@@ -262,8 +267,8 @@ def band_for(params, points):
     """
     if params.band_noise is None:
         return params
-    fixed = replace(params, band_noise=None)
-    if params.tile_points is not None or params.amplitude != "model":
+    fixed = replace(params, band_noise=None, band_gain=ADDED_LATER["band_gain"])
+    if not band_applies(params):
         return fixed
     phi = float(np.ptp(points, axis=0).max())
     spacing = float(np.median(resampling.nearest_spacing(points)))

@@ -91,7 +91,8 @@ def test_payload_longer_than_capacity(tmp_path, small_model, secret_env, capsys)
     _bad(tmp_path, capsys, ["embed", str(small_model), str(tmp_path / "out.ply"), "--key-id", "k",
                             "--message", "123456789", "--set", "n_bits=32"], "--message", "capacity")
     _bad(tmp_path, capsys, ["embed", str(small_model), str(tmp_path / "out.ply"), "--key-id", "k",
-                            "--message", "1", "--set", "chip_rate=200"], "model.ply", "capacity")
+                            "--message", "1", "--set", "chip_rate=200", "--set", "band_noise=null"],
+         "model.ply", "capacity")
 
 
 def test_missing_secret(tmp_path, small_model, monkeypatch, capsys):
@@ -180,7 +181,11 @@ def test_embedding_with_no_config_is_embedding_with_the_documented_default(tmp_p
                      "--json", *extra]) == 0
         written[name] = (out.read_bytes(), json.loads(capsys.readouterr().out)["params"])
     assert written["none"] == written["default"]
-    assert written["none"][1]["code"] == "convolutional" and written["none"][1]["beta"] == 0.00115
+    params = written["none"][1]
+    assert params["code"] == "convolutional" and params["band_noise"] is None
+    # 21,000 points: noise of 1 % spans over 2 spacings, so the band narrows at the same distance
+    rate = params["chip_rate"]
+    assert 3 <= rate < 10 and params["beta"] == pytest.approx(0.00115 * np.sqrt(10 / rate))
 
 
 def _lidar_piece(source, path, n=15000):

@@ -23,7 +23,7 @@ from .. import config as config_mod
 from ..io.pointcloud import atomic_write_bytes, read_points, units_of
 from ..kernels import fingerprint, keys, modulation
 from ..surface import apply_chain, parse_attack
-from ..watermark import (band_for, decode, distortion, embed_with_bases, estimate_differences,
+from ..watermark import (band_applies, band_for, decode, distortion, embed_with_bases, estimate_differences,
                          fingerprint_displacement, fingerprint_length, fingerprint_observations)
 from .reference import build_reference, load_reference
 
@@ -289,10 +289,9 @@ def _cells(cfg, collusion):
             for overrides in exp.get("parameters") or [{}]:
                 params = config_mod.watermark_params({"watermark": {**cfg["watermark"], **overrides}},
                                                      units_of(model))    # survey data: the rule embed uses
-                if params.band_noise is not None:         # the band follows the model's sampling
-                    if model not in originals:
-                        originals[model] = read_points(model).points
-                    params = band_for(params, originals[model])
+                if band_applies(params) and model not in originals:
+                    originals[model] = read_points(model).points
+                params = band_for(params, originals.get(model))     # the band follows the model's sampling
                 try:                    # fail before any work, not in every trial
                     config_mod.check_code(params)
                 except ValueError as exc:

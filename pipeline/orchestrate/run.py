@@ -42,7 +42,7 @@ from ..io.paths import check_apart, check_disjoint, copy_path, pending_path, sou
 from ..io.pointcloud import InputError, read_points, sha256_file, units_of
 from ..io.secrets import without_secret_env
 from ..kernels import keys
-from ..watermark import ADDED_LATER, band_for, params_record
+from ..watermark import ADDED_LATER, band_applies, band_for, params_record
 from . import tasks
 from .progress import Progress
 
@@ -222,8 +222,8 @@ def _plan_asset(job, asset, recipients, rows, out_dir, force):
     units = units_of(asset.path)
     try:
         item.params = watermark_params(job.cfg, units)
-        if item.params.band_noise is not None:     # the band follows the asset's sampling
-            item.params = band_for(item.params, read_points(asset.path).points)
+        # the band follows the asset's sampling (records hold what acted: band_noise null)
+        item.params = band_for(item.params, read_points(asset.path).points if band_applies(item.params) else None)
     except ValueError as exc:                        # no parameters for this asset: a failed row, not a stop
         item.error, item.params = f"{asset.path}: {exc}", job.params
         item.items = [(r, None) for r in recipients]

@@ -392,9 +392,9 @@ def _id_0_2_0(record):
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-# the 0.2.0 defaults, which that record holds
+# the 0.2.0 defaults, which that record holds (resolved for an asset, as a plan holds them: no band_noise)
 PARAMS_0_2_0 = WatermarkParams(beta=0.002, chip_layout="consecutive", displacement="xyz", code="repetition",
-                               cover=False)
+                               cover=False, band_noise=None)
 
 
 def test_a_rerun_with_an_unchanged_config_stays_in_its_generation():
