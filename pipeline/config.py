@@ -742,7 +742,7 @@ def check_code(params, error=ValueError):
     if params.total_bits * params.chip_rate < symbols:
         raise error(f"code {params.code}: {params.total_bits} bits x chip rate {params.chip_rate} = "
                     f"{params.total_bits * params.chip_rate} chips cannot carry its {symbols} coded symbols; "
-                    f"raise chip_rate to at least {-(-symbols // params.total_bits)}")
+                    f"raise chip_rate to at least {coding.least_chip_rate(params.total_bits, params.code)}")
 
 
 def watermark_params(cfg, units=None):

@@ -276,7 +276,7 @@ def band_for(params, points):
         return fixed                       # frame_of refuses such an asset with its reason
     band = spectral.surviving_band(min(params.cluster_size, len(points)), spacing,
                                    params.band_noise * phi / np.sqrt(3.0), params.band_gain)
-    least = -(-coding.coded_length(params.total_bits, params.code) // params.total_bits)
+    least = coding.least_chip_rate(params.total_bits, params.code)
     rate = int(min(params.chip_rate, max(least, (band - params.first_coefficient) // params.total_bits)))
     return replace(fixed, chip_rate=rate, beta=params.beta * float(np.sqrt(params.chip_rate / rate)))
 

@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["CODES", "CONSTRAINT", "GENERATORS", "coded_length", "encode", "decode_soft", "chip_groups"]
+__all__ = ["CODES", "CONSTRAINT", "GENERATORS", "coded_length", "least_chip_rate", "encode", "decode_soft",
+           "chip_groups"]
 
 CODES = ("repetition", "convolutional")
 GENERATORS = (0o171, 0o133)
@@ -28,6 +29,11 @@ def coded_length(n_bits, code):
     if code == "convolutional":
         return len(GENERATORS) * (int(n_bits) + CONSTRAINT - 1)
     raise ValueError(f"unknown code {code!r}; use one of {', '.join(CODES)}")
+
+
+def least_chip_rate(n_bits, code):
+    """Smallest chip rate whose ``n_bits`` x c chips carry the coded word (1 for repetition, 3 for 32 bits)."""
+    return -(-coded_length(n_bits, code) // int(n_bits))
 
 
 def _trellis():

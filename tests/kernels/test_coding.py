@@ -76,3 +76,10 @@ def test_wrong_lengths_and_names_are_refused():
         coding.decode_soft(np.zeros(10), 8, "convolutional")
     with pytest.raises(ValueError, match="unknown code"):
         coding.encode([1, 0], "turbo")
+
+
+@pytest.mark.parametrize("n_bits,code,least", [(32, "convolutional", 3), (24, "convolutional", 3),
+                                               (8, "convolutional", 4), (32, "repetition", 1)])
+def test_the_least_chip_rate_is_the_first_that_carries_the_coded_word(n_bits, code, least):
+    assert coding.least_chip_rate(n_bits, code) == least
+    assert n_bits * least >= coding.coded_length(n_bits, code) > n_bits * (least - 1)
