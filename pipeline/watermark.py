@@ -17,7 +17,7 @@ from scipy.spatial import cKDTree
 
 from .config import WatermarkParams, check_code
 from .kernels import (clustering, coding, digest, fingerprint, graph, keys, modulation, registration, resampling,
-                      spectral)
+                      revolution, spectral)
 from .kernels import distortion as surface_measures
 
 __all__ = [
@@ -882,6 +882,18 @@ def register(suspect, reference, spacing, detect_params, tree, normals=None, *, 
         best = tried[features.best_overlap(ranked)]
         search = features.needs_search(best, suspect, reference, spacing)
     if search:
+        # a part of a near solid of revolution: its axis and profile, then the turn about the axis
+        turned = _revolution_pose(suspect, reference, spacing, tree, normals)
+        if turned is not None:
+            tried.append(turned)
+            ranked.append(features.overlap_of(turned, suspect, reference, spacing))
+            best = tried[features.best_overlap(ranked)]
+            if best is turned and not features.needs_search(turned, suspect, reference, spacing):
+                if poses is not None:
+                    _add_turns(poses, suspect, reference, turned, spacing, tree)
+                times["deep"] = time.perf_counter() - t1
+                return turned
+    if search:
         # a part laid loosely on a smooth shape, where features mislead: search every rotation
         others = []
         searched = features.register_search(suspect, reference, spacing=spacing, normals=normals,
@@ -945,6 +957,43 @@ def _add_turns(poses, suspect, reference, found, spacing, tree):
     if turned:
         poses[:] = registration.poses_alike(suspect, tree, _coverage_sample(reference), found, [*poses, *turned],
                                             spacing)
+
+
+REVOLUTION_STARTS = 8     # coarse poses of :func:`revolution.revolution_poses` refined by ICP
+
+
+def _revolution_pose(suspect, reference, spacing, tree, normals, most=1500):
+    """A part of a near solid of revolution registered by its axis and profile (:mod:`kernels.revolution`).
+
+    None for an original without a near-symmetry axis, and for a part that
+    fixes no axis.  The best :data:`REVOLUTION_STARTS` coarse poses are
+    refined by ICP on at most ``most`` points; the tightest, by the median
+    distance to the original, is refined on every point and polished.
+    """
+    from . import features   # open3d: imported only when used
+
+    if not registration.axis_turns(reference, registration.Similarity(np.eye(3), 1.0, np.zeros(3)), steps=2):
+        return None
+    normals = resampling.estimate_normals(reference) if normals is None else normals
+    dense = features.dense_part(suspect)
+    spread = features.median_spacing(dense)
+    if not (np.isfinite(spread) and spread > 0.0):
+        return None
+    axis = revolution.revolution_axis(reference, normals)
+    starts = revolution.revolution_poses(suspect, resampling.estimate_normals(suspect), reference, axis, tree, spacing,
+                                         spacing / spread)[:REVOLUTION_STARTS]
+    if not starts:
+        return None
+    sub = suspect[:: max(1, len(suspect) // most)]
+
+    def tightness(pose):
+        return float(np.median(tree.query(registration.apply(pose, sub))[0]))
+
+    fits = [registration.refine_part(sub, tree, reference, pose, spacing=spacing, iterations=30) for _, pose in starts]
+    best = min(fits, key=tightness)
+    best = registration.refine_part(suspect, tree, reference, best, spacing=spacing, widths=POLISH_WIDTHS,
+                                    iterations=POLISH_ITERATIONS)
+    return features.polish(suspect, reference, best, spacing=spacing, normals=normals)
 
 
 def _register_parts(suspect, reference, spacing, tree):

@@ -433,12 +433,10 @@ def test_a_sparse_whole_birdbath_turned_about_its_axis_is_read_at_the_turns_that
     assert errors[0] > 1.0 and min(errors) < 0.01
 
 
-def test_a_vase_crop_placed_tightly_but_turned_about_the_axis_is_read_at_the_turns_and_the_true_one_is_among_them(
-        models):
-    # the black vase is a near solid of revolution: the feature step lays this 10 % crop on the
-    # surface (fitness high, no search) about 0.6 spacings off, turned about the axis; the turns
-    # about the axis that fit as well, each refined, include the true pose (residual 0: the crop
-    # keeps the original's points)
+def test_a_vase_crop_is_laid_where_it_was_cut_or_read_at_a_pose_that_is(models):
+    # the black vase is a near solid of revolution: features lay this 10 % crop on the surface
+    # turned about the axis; its own axis and profile, or the turns about the axis that fit as
+    # well, give the true pose (residual 0: the crop keeps the original's points)
     from pipeline.orchestrate.evaluate import parse_chain
     from pipeline.surface import apply_chain
     from pipeline.watermark import register
@@ -450,5 +448,5 @@ def test_a_vase_crop_placed_tightly_but_turned_about_the_axis_is_read_at_the_tur
     tree, poses = cKDTree(shape), []
     found = register(suspect, shape, spacing, EFFORT, tree, poses=poses)
     residual = [float(np.median(tree.query(registration.apply(p, suspect))[0])) / spacing for p in [found, *poses]]
-    assert residual[0] > 0.3 and 0 < len(poses) <= registration.MAX_POSES
+    assert len(poses) <= registration.MAX_POSES
     assert min(residual) < 0.05
