@@ -332,7 +332,8 @@ def revolution_poses(part, part_normals, original, original_axis, tree, spacing,
     whole = profile(original, anchor_o, dir_o)
     whole_tree = cKDTree(whole)
     out = []
-    for anchor_s, dir_s, cost_s in revolution_axis(sub, part_normals[:: max(1, len(part) // most)], count=axes):
+    found = revolution_axis(sub, part_normals[:: max(1, len(part) // most)], count=axes)
+    for anchor_s, dir_s, cost_s in (found if axes > 1 else [found]):
         if np.isfinite(cost_s):
             out.extend(_turns(sub, anchor_s, dir_s, original, anchor_o, dir_o, frame_o, whole, whole_tree, tree,
                               spacing, scale_hint, matches, turns))

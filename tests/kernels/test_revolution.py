@@ -48,7 +48,8 @@ def test_a_turned_rescaled_crop_of_a_vase_is_laid_back_where_it_was_cut():
         truth = _turned(kept, seed)
         part = registration.apply(truth, kept)
         hint = 1.0 / truth.scale * float(np.exp(rng.uniform(-0.2, 0.2)))      # the spacing ratio, roughly
-        starts = revolution.revolution_poses(part, resampling.estimate_normals(part), shape, axis, tree, spacing, hint)
+        starts = revolution.revolution_poses(part, resampling.estimate_normals(part), shape, axis, tree, spacing, hint,
+                                             axes=1 + seed)     # one candidate axis, then two
         assert starts
         fits = [registration.refine_part(part, tree, shape, pose, spacing=spacing, iterations=30)
                 for _, pose in starts[:8]]
