@@ -960,6 +960,7 @@ def _add_turns(poses, suspect, reference, found, spacing, tree):
 
 
 REVOLUTION_STARTS = 8     # coarse poses of :func:`revolution.revolution_poses` refined by ICP
+REVOLUTION_SCALE = 0.1    # most |log| change of scale in that ICP
 
 
 def _revolution_pose(suspect, reference, spacing, tree, normals, most=1500):
@@ -990,6 +991,11 @@ def _revolution_pose(suspect, reference, spacing, tree, normals, most=1500):
         return float(np.median(tree.query(registration.apply(pose, sub))[0]))
 
     fits = [registration.refine_part(sub, tree, reference, pose, spacing=spacing, iterations=30) for _, pose in starts]
+    # the profile fixed the scale: a fit that shrank is collapsing (every point near one spot)
+    fits = [f for f, (_, pose) in zip(fits, starts)
+            if f.scale > 0 and abs(np.log(f.scale / pose.scale)) < REVOLUTION_SCALE]
+    if not fits:
+        return None
     best = min(fits, key=tightness)
     best = registration.refine_part(suspect, tree, reference, best, spacing=spacing, widths=POLISH_WIDTHS,
                                     iterations=POLISH_ITERATIONS)

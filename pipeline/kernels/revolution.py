@@ -341,29 +341,43 @@ def revolution_poses(part, part_normals, original, original_axis, tree, spacing,
 
 
 def _turns(sub, anchor_s, dir_s, original, anchor_o, dir_o, frame_o, whole, whole_tree, tree, spacing, scale_hint,
-           matches, turns):
-    """The best turns of each of the best profile matches about one candidate axis of the part."""
+           matches, turns, rounds=2):
+    """The best turns of each of the best profile matches about one candidate axis of the part.
+
+    Each match refines the axis with the scale and height (:func:`_refine_axis`); the
+    axis of the tightest turn is matched again, ``rounds`` times in all.
+    """
     probe = sub[:: max(1, len(sub) // 300)]
     out = []
-    for _, s, t, f in match_profile(profile(sub, anchor_s, dir_s), whole, scale_hint, spacing)[:matches]:
-        anchor, direction, s, t = _refine_axis(sub, anchor_s, dir_s, s, t, f, whole_tree, spacing)
-        frame_s = _frame(direction)
-        # part frame (d, u, v) onto (f d_o, u_o, f d_o x u_o): a proper rotation either way up
-        target = np.stack([f * frame_o[:, 0], frame_o[:, 1], np.cross(f * frame_o[:, 0], frame_o[:, 1])], axis=1)
-        base = target @ frame_s.T
-        angles = 2.0 * np.pi * np.arange(TURN_STEPS) / TURN_STEPS
-        costs = []
-        poses = []
-        for a in angles:
-            turn = Rotation.from_rotvec(a * dir_o).as_matrix()
-            rot = turn @ base
-            pose = Similarity(rot, float(s), anchor_o + t * dir_o - s * rot @ anchor)
-            moved = s * probe @ rot.T + pose.translation
-            d, _ = tree.query(moved)
-            costs.append(float(np.median(d)))
-            poses.append(pose)
-        costs = np.asarray(costs)
-        minima = [i for i in np.argsort(costs)
-                  if costs[i] <= costs[i - 1] and costs[i] <= costs[(i + 1) % len(costs)]][:turns]
-        out.extend((float(costs[i]), poses[i]) for i in minima)
+    axis = (anchor_s, dir_s)
+    for _ in range(rounds):
+        best = (np.inf, None)
+        for _, s, t, f in match_profile(profile(sub, *axis), whole, scale_hint, spacing)[:matches]:
+            anchor, direction, s, t = _refine_axis(sub, *axis, s, t, f, whole_tree, spacing)
+            found = _turn_scan(probe, anchor, direction, s, t, f, anchor_o, dir_o, frame_o, tree, turns)
+            out.extend(found)
+            if found and found[0][0] < best[0]:
+                best = (found[0][0], (anchor, direction))
+        if best[1] is None:
+            break
+        axis = best[1]
     return sorted(out, key=lambda x: x[0])
+
+
+def _turn_scan(probe, anchor, direction, s, t, f, anchor_o, dir_o, frame_o, tree, turns):
+    """The ``turns`` best local minima, over turns about the axis, of the probe's median distance to the original."""
+    frame_s = _frame(direction)
+    # part frame (d, u, v) onto (f d_o, u_o, f d_o x u_o): a proper rotation either way up
+    target = np.stack([f * frame_o[:, 0], frame_o[:, 1], np.cross(f * frame_o[:, 0], frame_o[:, 1])], axis=1)
+    base = target @ frame_s.T
+    costs, poses = [], []
+    for a in 2.0 * np.pi * np.arange(TURN_STEPS) / TURN_STEPS:
+        rot = Rotation.from_rotvec(a * dir_o).as_matrix() @ base
+        pose = Similarity(rot, float(s), anchor_o + t * dir_o - s * rot @ anchor)
+        d, _ = tree.query(s * probe @ rot.T + pose.translation)
+        costs.append(float(np.median(d)))
+        poses.append(pose)
+    costs = np.asarray(costs)
+    minima = [i for i in np.argsort(costs)
+              if costs[i] <= costs[i - 1] and costs[i] <= costs[(i + 1) % len(costs)]][:turns]
+    return sorted(((float(costs[i]), poses[i]) for i in minima), key=lambda x: x[0])
