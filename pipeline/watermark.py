@@ -893,7 +893,6 @@ def register(suspect, reference, spacing, detect_params, tree, normals=None, *, 
                     _add_turns(poses, suspect, reference, turned, spacing, tree)
                 times["deep"] = time.perf_counter() - t1
                 return turned
-    if search:
         # a part laid loosely on a smooth shape, where features mislead: search every rotation
         others = []
         searched = features.register_search(suspect, reference, spacing=spacing, normals=normals,
@@ -973,16 +972,15 @@ def _revolution_pose(suspect, reference, spacing, tree, normals, most=1500):
     """
     from . import features   # open3d: imported only when used
 
-    if not registration.axis_turns(reference, registration.Similarity(np.eye(3), 1.0, np.zeros(3)), steps=2):
+    if not registration.symmetry_axes(reference):
         return None
     normals = resampling.estimate_normals(reference) if normals is None else normals
-    dense = features.dense_part(suspect)
-    spread = features.median_spacing(dense)
-    if not (np.isfinite(spread) and spread > 0.0):
+    scale = features.scale_hint(features.dense_part(suspect), spacing)
+    if scale is None:
         return None
     axis = revolution.revolution_axis(reference, normals)
     starts = revolution.revolution_poses(suspect, resampling.estimate_normals(suspect), reference, axis, tree, spacing,
-                                         spacing / spread)[:REVOLUTION_STARTS]
+                                         scale)[:REVOLUTION_STARTS]
     if not starts:
         return None
     sub = suspect[:: max(1, len(suspect) // most)]

@@ -32,7 +32,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 __all__ = [
-    "Similarity", "apply", "umeyama", "principal_frame", "register_covariance",
+    "Similarity", "apply", "umeyama", "principal_frame", "register_covariance", "symmetry_axes",
     "icp_similarity", "register_robust", "umeyama_batch", "ransac_similarity", "overlap",
     "refine_part", "refine_plane", "rotation_search", "connected_parts", "separate_objects", "shape_signature",
 ]
@@ -731,15 +731,28 @@ def axis_turns(original, transform, steps=AXIS_TURNS):
         Empty when the original has no near-symmetric axis.
     """
     centroid, axes, _ = principal_frame(original)
-    spread = shape_signature(original)
     turns = []
-    for k, (i, j) in enumerate(((1, 2), (0, 2), (0, 1))):      # axis k, with the spreads of the other two
-        if min(spread[i], spread[j]) >= SYMMETRY_TIE * max(spread[i], spread[j]):
-            for angle in 2.0 * np.pi * np.arange(1, steps) / steps:
-                turn = Rotation.from_rotvec(angle * axes[:, k]).as_matrix()
-                turns.append(Similarity(turn @ transform.rotation, transform.scale,
-                                        turn @ (transform.translation - centroid) + centroid))
+    for k in symmetry_axes(original):
+        for angle in 2.0 * np.pi * np.arange(1, steps) / steps:
+            turn = Rotation.from_rotvec(angle * axes[:, k]).as_matrix()
+            turns.append(Similarity(turn @ transform.rotation, transform.scale,
+                                    turn @ (transform.translation - centroid) + centroid))
     return turns
+
+
+def symmetry_axes(original):
+    """Indices of the principal axes of ``original`` about which it is near-symmetric (see :data:`SYMMETRY_TIE`).
+
+    An axis is near-symmetric when the spreads along the other two principal
+    axes are at least :data:`SYMMETRY_TIE` alike (a vase, a birdbath).
+
+    Returns
+    -------
+    list of int
+    """
+    spread = shape_signature(original)
+    return [k for k, (i, j) in enumerate(((1, 2), (0, 2), (0, 1)))
+            if min(spread[i], spread[j]) >= SYMMETRY_TIE * max(spread[i], spread[j])]
 
 
 def connected_parts(points, radius, *, min_points=1):

@@ -22,7 +22,7 @@ from scipy.spatial.transform import Rotation
 
 from .registration import Similarity
 
-__all__ = ["revolution_axis", "profile", "thickness", "match_profile", "revolution_poses"]
+__all__ = ["revolution_axes", "revolution_axis", "profile", "thickness", "match_profile", "revolution_poses"]
 
 AXIS_DIRECTIONS = 2000   # directions of the hemisphere tried for an axis
 TURN_STEPS = 720         # turns about the axis tried (half a degree)
@@ -61,8 +61,13 @@ def _axis_fit(points, normals, directions):
     return anchors, cost
 
 
-def revolution_axis(points, normals, *, directions=AXIS_DIRECTIONS, most=600, count=1):
-    """The axis of the surface of revolution that ``points`` (with ``normals``) lie on, best fitting.
+def revolution_axis(points, normals, **kw):
+    """The best of :func:`revolution_axes`: ``(anchor, direction, cost)``."""
+    return revolution_axes(points, normals, count=1, **kw)[0]
+
+
+def revolution_axes(points, normals, *, directions=AXIS_DIRECTIONS, most=600, count=1):
+    """Axes of the surface of revolution that ``points`` (with ``normals``) lie on, best fitting first.
 
     Every normal line of a surface of revolution meets its axis: the
     directions of a hemisphere are ranked by how near the normal lines pass
@@ -80,16 +85,14 @@ def revolution_axis(points, normals, *, directions=AXIS_DIRECTIONS, most=600, co
     most : int
         Points used (evenly strided).
     count : int
-        Candidate axes returned (a list when more than 1).
+        Most candidate axes returned.
 
     Returns
     -------
-    anchor : (3,) float
-        A point of the axis.
-    direction : (3,) float
-        Unit direction (its sign is arbitrary).
-    cost : float
-        The profile's :func:`thickness` about it (inf: no axis, a flat part).
+    list of (anchor, direction, cost)
+        A point of each axis (3,), its unit direction (3,) (the sign is
+        arbitrary), and the profile's :func:`thickness` about it (inf: no
+        axis, a flat part); at least one entry.
     """
     step = max(1, len(points) // most)
     p, n = np.asarray(points[::step], dtype=np.float64), np.asarray(normals[::step], dtype=np.float64)
@@ -106,8 +109,7 @@ def revolution_axis(points, normals, *, directions=AXIS_DIRECTIONS, most=600, co
             found.append((anchor + centre, d, value))
     if not found:
         found = [(centre, grid[0], float("inf"))]
-    found.sort(key=lambda f: f[2])
-    return found if count > 1 else found[0]
+    return sorted(found, key=lambda f: f[2])
 
 
 AXIS_APART = np.radians(20.0)
@@ -169,9 +171,7 @@ AXIS_KEEP = 0.7     # share of the points whose normal lines refine the axis
 
 def _cap_fit(p, n, d, width):
     """:func:`_axis_fit` on an 11 x 11 grid of directions within ``width`` (radians) of ``d``."""
-    u = np.cross(d, [1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0])
-    u /= np.linalg.norm(u)
-    v = np.cross(d, u)
+    _, u, v = _frame(d).T
     g = np.linspace(-width, width, 11)
     cap = d + g[:, None, None] * u + g[None, :, None] * v
     cap = (cap / np.linalg.norm(cap, axis=2, keepdims=True)).reshape(-1, 3)
@@ -311,7 +311,7 @@ def revolution_poses(part, part_normals, original, original_axis, tree, spacing,
         The original's median point spacing.
     scale_hint : float
     axes : int
-        Candidate axes of the part tried (:func:`revolution_axis`).
+        Candidate axes of the part tried (:func:`revolution_axes`).
     matches : int
         Profile matches (:func:`match_profile`) turned, per axis.
     turns : int
@@ -332,15 +332,14 @@ def revolution_poses(part, part_normals, original, original_axis, tree, spacing,
     whole = profile(original, anchor_o, dir_o)
     whole_tree = cKDTree(whole)
     out = []
-    found = revolution_axis(sub, part_normals[:: max(1, len(part) // most)], count=axes)
-    for anchor_s, dir_s, cost_s in (found if axes > 1 else [found]):
+    for anchor_s, dir_s, cost_s in revolution_axes(sub, part_normals[:: max(1, len(part) // most)], count=axes):
         if np.isfinite(cost_s):
-            out.extend(_turns(sub, anchor_s, dir_s, original, anchor_o, dir_o, frame_o, whole, whole_tree, tree,
+            out.extend(_turns(sub, anchor_s, dir_s, anchor_o, dir_o, frame_o, whole, whole_tree, tree,
                               spacing, scale_hint, matches, turns))
     return sorted(out, key=lambda x: x[0])
 
 
-def _turns(sub, anchor_s, dir_s, original, anchor_o, dir_o, frame_o, whole, whole_tree, tree, spacing, scale_hint,
+def _turns(sub, anchor_s, dir_s, anchor_o, dir_o, frame_o, whole, whole_tree, tree, spacing, scale_hint,
            matches, turns, rounds=2):
     """The best turns of each of the best profile matches about one candidate axis of the part.
 
@@ -370,14 +369,12 @@ def _turn_scan(probe, anchor, direction, s, t, f, anchor_o, dir_o, frame_o, tree
     # part frame (d, u, v) onto (f d_o, u_o, f d_o x u_o): a proper rotation either way up
     target = np.stack([f * frame_o[:, 0], frame_o[:, 1], np.cross(f * frame_o[:, 0], frame_o[:, 1])], axis=1)
     base = target @ frame_s.T
-    costs, poses = [], []
-    for a in 2.0 * np.pi * np.arange(TURN_STEPS) / TURN_STEPS:
-        rot = Rotation.from_rotvec(a * dir_o).as_matrix() @ base
-        pose = Similarity(rot, float(s), anchor_o + t * dir_o - s * rot @ anchor)
-        d, _ = tree.query(s * probe @ rot.T + pose.translation)
-        costs.append(float(np.median(d)))
-        poses.append(pose)
-    costs = np.asarray(costs)
+    turned = Rotation.from_rotvec(np.outer(2.0 * np.pi * np.arange(TURN_STEPS) / TURN_STEPS, dir_o)).as_matrix() @ base
+
+    def pose(rot):
+        return Similarity(rot, float(s), anchor_o + t * dir_o - s * rot @ anchor)
+
+    costs = np.array([float(np.median(tree.query(s * probe @ rot.T + pose(rot).translation)[0])) for rot in turned])
     minima = [i for i in np.argsort(costs)
               if costs[i] <= costs[i - 1] and costs[i] <= costs[(i + 1) % len(costs)]][:turns]
-    return sorted(((float(costs[i]), poses[i]) for i in minima), key=lambda x: x[0])
+    return [(float(costs[i]), pose(turned[i])) for i in minima]
