@@ -1,4 +1,4 @@
-"""pointmark benchmarks: ``make bench`` (or ``python bench/run.py [spectral] [catalog] [scan] [fingerprint] [issue] [cli] [leaks] [leaks-resample] [leaks-resample-check] [leaks-trim] [leaks-parts] [leaks-rescan] [leaks-candidates] [leaks-poses] [leaks-negatives] [tile] [gltf] [fingerprint-crops]``).
+"""pointmark benchmarks: ``make bench`` (or ``python bench/run.py [spectral] [catalog] [scan] [fingerprint] [issue] [cli] [leaks] [leaks-resample] [leaks-resample-check] [leaks-trim] [leaks-parts] [leaks-rescan] [leaks-candidates] [leaks-poses] [leaks-negatives] [tile] [gltf] [fingerprint-crops] [scan-throughput]``).
 
 Every figure is a ratio of two timings taken side by side in this one run,
 since shared machines are noisy; each timing is the best of a few repeats.
@@ -360,6 +360,14 @@ def crops_bench():
     run()
 
 
+def throughput_bench():
+    """A nightly crawl's mix (90 % innocent) scanned against 100 and 300 assets (issue 38; hours): bench/throughput.py."""
+    sys.path.insert(0, str(ROOT / "bench"))
+    from throughput import throughput_bench as run
+
+    run()
+
+
 def tile_bench():
     """Embedding 1- and 10-million-point LAZ tiles (issue 15; about 45 minutes): see bench/tile.py."""
     sys.path.insert(0, str(ROOT / "bench"))
@@ -374,7 +382,7 @@ BENCHES = {"spectral": spectral_bench, "catalog": catalog_bench, "scan": scan_be
            "leaks-trim": trim_bench, "leaks-parts": parts_bench, "leaks-rescan": rescan_bench,
            "leaks-candidates": candidates_bench, "leaks-poses": poses_bench,
            "leaks-negatives": negatives_bench, "gltf": gltf_bench,
-           "fingerprint-crops": crops_bench}
+           "fingerprint-crops": crops_bench, "scan-throughput": throughput_bench}
 DEFAULT = ["spectral", "catalog", "scan", "fingerprint", "issue", "cli"]   # the others run when named
 
 
