@@ -114,7 +114,7 @@ def write_suspects(work, rows, other_rows, n_suspects):
     originals = sorted({r["asset_key"]: r["source_path"] for r in rows}.items())
     held = [read_points(DATA / "models" / f"{k}.ply").points for k in HELD_OUT]
     n_leaks = max(1, round(0.1 * n_suspects))
-    shapes = iter(_procedural(n_suspects, 5000).values())
+    shapes = iter(_procedural(n_suspects // len(INNOCENTS) + 1, 5000).values())
     truth = {}
     for i in range(n_suspects):
         name = f"s{i:04d}"
