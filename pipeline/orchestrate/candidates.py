@@ -107,7 +107,7 @@ def candidates(info, view, top_k, shape_margin):
     return list(dict.fromkeys(pick))
 
 
-def cascade(info, picked, deep_votes, deep_shape, quick_shape, explained_points=None, explained_votes=None):
+def cascade(info, picked, deep_votes, deep_shape, quick_shape, explained_points=None):
     """How far each candidate's check may go: the scan's cascade, decided from the triage alone.
 
     The quick registration steps (:func:`pipeline.watermark.register`)
@@ -134,9 +134,9 @@ def cascade(info, picked, deep_votes, deep_shape, quick_shape, explained_points=
         ``scan.deep_votes``, ``scan.deep_shape`` and ``scan.quick_shape``;
         None in ``deep_votes`` (or ``deep_shape``): every candidate may go
         deep; None in ``quick_shape``: every candidate gets the quick steps.
-    explained_points, explained_votes : int, float or None
-        ``scan.explained_points`` and ``scan.explained_votes``, for the
-        checks that follow (:func:`explained`); they change nothing here.
+    explained_points : int or None
+        ``scan.explained_points``, for the checks that follow
+        (:func:`explained`, :func:`held_to_quick`); it changes nothing here.
 
     Returns
     -------
@@ -156,38 +156,29 @@ def cascade(info, picked, deep_votes, deep_shape, quick_shape, explained_points=
     return out
 
 
-def explained(check, info, key, explained_points, explained_votes):
-    """Whether a check that accused no one found the suspect to be its original, that original alone.
+def explained(check, explained_points):
+    """Whether a check that accused no one laid the whole suspect on its original.
 
     True when its registration leaves fewer than ``explained_points`` of the
     suspect's points off the original (``off_points`` of
-    :func:`pipeline.orchestrate.attribute.check_asset`): the suspect is that
-    original, unmarked or marked under keys that name no one, and what is
-    left is too small to hold a recipient's mark; and when the original's
-    share of the suspect's descriptor votes (``info``, from :func:`triage`,
-    under ``key``) reaches ``explained_votes``.  The votes pass Lowe's ratio
-    test across assets, so a surface that two assets share (another scan of
-    the same object, an asset cut from another) votes for neither: a part of
-    another asset lying on this original's surface gives it no votes, and
-    only a suspect with surface of this original's own is explained.  None
-    in either threshold: never.
+    :func:`pipeline.orchestrate.attribute.check_asset`):
+    the suspect is that original, unmarked or marked under keys that do not
+    name anyone, and what is left is too small to hold any recipient's mark
+    (``scan.explained_points``).  None in ``explained_points``: never.
     """
     off = check.get("off_points")
-    if explained_points is None or explained_votes is None or off is None or off >= explained_points:
-        return False
-    votes = dict(zip(info.get("index_ranking", []), info.get("index_votes", [])))
-    return votes.get(key, -float("inf")) >= explained_votes
+    return explained_points is not None and off is not None and off < explained_points
 
 
 def held_to_quick(info, queued, deep_votes):
     """Which of the candidates still queued keep their deep steps once a check explained the suspect.
 
-    Every suspect point then lies on the explaining original, and on surface
-    of that original's own (:func:`explained`), so another asset can hold
-    only what its own descriptors vote for: a candidate keeps its deep steps
-    when its vote share reaches ``deep_votes`` (or it has none: not
-    indexed); the others get the quick steps, which still settle a
-    near-identical asset holding the suspect whole.
+    Every suspect point then lies on the explaining original, so another
+    asset can hold a part of the suspect only where its surface is that
+    original's, and there the suspect's local descriptors vote for it too:
+    a candidate keeps its deep steps when its vote share reaches
+    ``deep_votes`` (or it has none: not indexed); the others get the quick
+    steps, which still settle a near-identical asset holding the suspect whole.
 
     Parameters
     ----------

@@ -79,14 +79,14 @@ def _check_in_order(suspect, candidates, stages, groups, materials, store, detec
     The threshold counts every recipient of every candidate planned, those
     the cascade stops (``stages``) included, so neither stopping early nor
     the cascade adds a chance to accuse.  Once a check explains the suspect
-    (:func:`pipeline.orchestrate.candidates.explained` at the last two of
+    (:func:`pipeline.orchestrate.candidates.explained` at the fourth of
     ``gates``), the candidates after it go deep only by their ``votes``
     (:func:`pipeline.orchestrate.candidates.held_to_quick`).
     """
 
     planned = planned_recipients([groups[c] for c in candidates], materials)
     deep = {c: stages[c] == "deep" for c in candidates}
-    least, share = gates[3:5] if gates is not None and len(gates) > 4 else (None, None)
+    least = gates[3] if gates is not None and len(gates) > 3 else None
     checks = []
     for i, c in enumerate(candidates):
         if stages[c] is None:
@@ -94,7 +94,7 @@ def _check_in_order(suspect, candidates, stages, groups, materials, store, detec
         checks.append(check_asset(suspect, groups[c], materials, store, detect_params, deep=deep[c]))
         if decide(checks, detect_params.epsilon, planned=planned)["accused"]:
             break
-        if explained(checks[-1], votes or {}, c, least, share):
+        if explained(checks[-1], least):
             keep = held_to_quick(votes or {}, candidates[i + 1:], gates[0])
             deep.update({a: deep[a] and keep[a] for a in keep})
             least = None                      # the first explanation decides
@@ -112,7 +112,7 @@ def detect_from_ledger(suspect, ledger_dir, secret, detect_params, *, asset=None
     so parts of an asset and assets inside a scene are found as a scan
     finds them.  They are checked best-ranked first, up to the first match,
     each through the scan's cascade at ``gates`` ((deep_votes, deep_shape,
-    quick_shape, explained_points, explained_votes); "config": the config's ``scan`` values).
+    quick_shape, explained_points); "config": the config's ``scan`` values).
 
     Returns
     -------

@@ -384,8 +384,8 @@ class _Work:
 
     def _explained(self, info, check):
         """The suspect is this check's original whole: the candidates left go deep only by their votes."""
-        deep_votes, _, _, least, votes = config_mod.cascade_gates(self.cfg)
-        if not explained(check, info, check["asset_key"], least, votes):
+        deep_votes, _, _, least = config_mod.cascade_gates(self.cfg)
+        if not explained(check, least):
             return
         info["explained"] = check["asset_key"]
         keep = held_to_quick(info, [q[0] for q in info["queue"]], deep_votes)

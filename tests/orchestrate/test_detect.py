@@ -114,15 +114,13 @@ def test_once_the_suspect_lies_whole_on_an_original_a_candidate_without_votes_ge
 
     def check(least):
         return _check_in_order(tmp / "whole.ply", order, dict.fromkeys(order, "deep"), groups, materials,
-                               ledger_dir / "bases", params, votes, (0.03, 0.05, None, least, 0.1))
+                               ledger_dir / "bases", params, votes, (0.03, 0.05, None, least))
 
     held, open_ = check(300), check(None)
     assert held["checks"][0]["off_points"] < 300 and held["verdict"] == open_["verdict"] == "no match"
     assert [c["stopped"] for c in held["checks"]] == [0, 1]
     assert [c["stopped"] for c in open_["checks"]] == [0, 0]       # deep, it was registered and scored
     assert held["n_checked"] == open_["n_checked"] == 4
-    votes["index_votes"] = [0.05, 0.0]                # asset-0 without votes of its own: nothing held
-    assert [c["stopped"] for c in check(300)["checks"]] == [0, 0]
 
 
 @pytest.mark.parametrize("secret, needle", [("8bytes!!", "at least 16"),

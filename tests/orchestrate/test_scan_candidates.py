@@ -43,18 +43,13 @@ def test_the_cascade_sends_voted_or_near_candidates_deep_nearish_ones_quick_and_
     assert cascade({}, ["a"], 1.0, 0.0, 0.0) == {"a": "deep"}          # no index: deep
 
 
-def test_a_check_explains_the_suspect_only_when_it_leaves_too_few_points_off_an_original_of_its_own_votes():
-    info = {"index_ranking": ["a", "twin"], "index_votes": [0.4, 0.02]}
-    assert explained({"off_points": 0}, info, "a", 300, 0.1)
-    assert explained({"off_points": 299}, info, "a", 300, 0.1)
-    assert not explained({"off_points": 300}, info, "a", 300, 0.1)
-    assert not explained({"off_points": None}, info, "a", 300, 0.1)   # nothing registered: nothing explained
-    assert not explained({}, info, "a", 300, 0.1)
-    # surface shared with another asset votes for neither: such an original explains nothing
-    assert not explained({"off_points": 0}, info, "twin", 300, 0.1)
-    assert not explained({"off_points": 0}, info, "unindexed", 300, 0.1)
-    assert not explained({"off_points": 0}, info, "a", None, 0.1)     # the rule off
-    assert not explained({"off_points": 0}, info, "a", 300, None)
+def test_a_check_explains_the_suspect_only_when_fewer_than_the_floor_of_its_points_are_off_the_original():
+    assert explained({"off_points": 0}, 300)
+    assert explained({"off_points": 299}, 300)
+    assert not explained({"off_points": 300}, 300)
+    assert not explained({"off_points": None}, 300)       # nothing registered: nothing explained
+    assert not explained({}, 300)
+    assert not explained({"off_points": 0}, None)         # the rule off
 
 
 def test_once_explained_only_candidates_with_votes_keep_their_deep_steps():
@@ -96,13 +91,12 @@ def test_a_scan_holds_the_candidates_after_an_explaining_check_to_the_quick_step
     from pipeline import config
     from pipeline.orchestrate.scan import _Work
 
-    work = SimpleNamespace(cfg=config.load_config())       # deep_votes 0.03, explained_points 300, votes 0.1
+    work = SimpleNamespace(cfg=config.load_config())       # deep_votes 0.03, explained_points 300
     queue = [("b", ["rb"], [], True), ("c", ["rc"], [], True), ("d", ["rd"], [], False)]
     info = {"index_ranking": ["a", "b", "c", "d"], "index_votes": [0.5, 0.0, 0.2, 0.0], "queue": list(queue)}
     _Work._explained(work, info, {"asset_key": "a", "off_points": 12})
     assert info["queue"] == [("b", ["rb"], [], False), ("c", ["rc"], [], True), ("d", ["rd"], [], False)]
     assert info["explained"] == "a" and info["held"] == 1
-    for votes, off in ((0.5, 5000), (0.05, 12)):     # 5,000 points elsewhere (a scene); a shared surface
-        left = {"index_ranking": ["a", "b"], "index_votes": [votes, 0.0], "queue": list(queue)}
-        _Work._explained(work, left, {"asset_key": "a", "off_points": off})
-        assert left["queue"] == queue and "explained" not in left
+    left = {"index_ranking": ["a", "b"], "index_votes": [0.5, 0.0], "queue": list(queue)}
+    _Work._explained(work, left, {"asset_key": "a", "off_points": 5000})   # 5,000 points elsewhere: a scene
+    assert left["queue"] == queue and "explained" not in left
