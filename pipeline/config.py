@@ -309,14 +309,6 @@ SCAN = _section("Leak-detection scans (pointmark scan).", {
                       "within this, and is scored if they settle it; the others are not registered.  What the "
                       "cascade stops is never scored, and its recipients still count in the threshold.  "
                       "null: every candidate gets the quick steps.", minimum=0, maximum=1000),
-    "explained_points": _p(("integer", "null"), 300,
-                           "The scan's cascade: a check that accuses no one but lays all but fewer than this "
-                           "many of the suspect's points on its original explains the suspect (an unmarked "
-                           "original, a copy under keys that name no one); the candidates after it keep their "
-                           "deep steps only by their descriptor votes (deep_votes), the others get the quick "
-                           "ones.  The smallest piece that named a recipient was about 1,750 points (a 5 % crop "
-                           "of a bunny scan; 2 %, about 700 points, named 4 of 11).  null: never.",
-                           minimum=0, maximum=1_000_000_000),
     "max_bit_errors": _p("integer", 3, "A decoded payload within this many bits of an issued one "
                          "identifies its recipient.", minimum=0,
                          maximum=256),
@@ -813,10 +805,9 @@ def detect_params(cfg):
 
 
 def cascade_gates(cfg):
-    """(deep_votes, deep_shape, quick_shape, explained_points) of a validated config: the scan's cascade
-    (scan, detect --ledger)."""
+    """(deep_votes, deep_shape, quick_shape) of a validated config: the scan's cascade (scan, detect --ledger)."""
     sc = cfg["scan"]
-    return sc["deep_votes"], sc["deep_shape"], sc["quick_shape"], sc["explained_points"]
+    return sc["deep_votes"], sc["deep_shape"], sc["quick_shape"]
 
 
 def dataclass_keys():

@@ -88,12 +88,9 @@ def check_asset(suspect_path, rows, materials, store, detect_params, *, places=(
         ``groups`` (one per reference and key id: asset, key id, recipients
         scored, their best scores, presence p-value, registration, original
         path), ``stopped`` (references left unscored after the quick
-        registration steps), ``off_points`` (the fewest suspect points that a
-        registered reference leaves farther than 3 of its spacings from its
-        original; None when none registered), ``unchecked`` (lines from
-        :func:`original_files`: copies whose original no file holds) and
-        timings (``registration``, of it ``quick`` and ``deep``,
-        ``estimate``, ``scoring``).
+        registration steps), ``unchecked`` (lines from :func:`original_files`:
+        copies whose original no file holds) and timings (``registration``,
+        of it ``quick`` and ``deep``, ``estimate``, ``scoring``).
 
     Raises
     ------
@@ -109,7 +106,7 @@ def check_asset(suspect_path, rows, materials, store, detect_params, *, places=(
     for r in rows:
         if r["source_sha256"] in files:         # the rest are reported in ``unchecked``, never "no match"
             by_ref[r["reference_key"]].append(r)
-    groups, stopped, off = [], 0, []
+    groups, stopped = [], 0
     seconds = {"registration": 0.0, "quick": 0.0, "deep": 0.0, "estimate": 0.0, "scoring": 0.0}
     for ref_key, ref_rows in sorted(by_ref.items()):
         params = params_from_row(ref_rows[0])
@@ -131,8 +128,6 @@ def check_asset(suspect_path, rows, materials, store, detect_params, *, places=(
         seconds["quick"] += est["seconds_quick"]
         seconds["deep"] += est["seconds_deep"]
         seconds["estimate"] += est["seconds_estimate"]
-        if not est["registration"]["failed"]:
-            off.append(int(round((1.0 - est["registration"]["fitness"]) * len(suspect))))
         t0 = time.perf_counter()
         ys = fingerprint_observations(est, ref.specs, params)
         for key_id, generation_id in sorted({(r["key_id"], r["generation_id"]) for r in ref_rows}):
@@ -142,7 +137,7 @@ def check_asset(suspect_path, rows, materials, store, detect_params, *, places=(
                                "original_path": str(files[sha])})
         seconds["scoring"] += time.perf_counter() - t0
     return {"asset_key": rows[0]["asset_key"], "groups": groups, "stopped": stopped, "seconds": seconds,
-            "off_points": min(off, default=None), "unchecked": unchecked}
+            "unchecked": unchecked}
 
 
 def original_files(rows, places=(), store=None):

@@ -22,7 +22,7 @@ from ..io.basis_store import find_file, read_file, write_file
 from ..io.pointcloud import InputError, read_points, sha256_file
 from ..kernels.descriptor import d2_descriptor, descriptor_distance
 
-__all__ = ["triage", "candidates", "cascade", "explained", "held_to_quick", "build_index", "load_index", "planned_recipients", "INDEX_FORMAT", "MIN_POINTS"]
+__all__ = ["triage", "candidates", "cascade", "build_index", "load_index", "planned_recipients", "INDEX_FORMAT", "MIN_POINTS"]
 
 
 _INDEXES: "OrderedDict[str, object]" = OrderedDict()    # sha256 of an index file -> its FeatureIndex
@@ -107,7 +107,7 @@ def candidates(info, view, top_k, shape_margin):
     return list(dict.fromkeys(pick))
 
 
-def cascade(info, picked, deep_votes, deep_shape, quick_shape, explained_points=None):
+def cascade(info, picked, deep_votes, deep_shape, quick_shape):
     """How far each candidate's check may go: the scan's cascade, decided from the triage alone.
 
     The quick registration steps (:func:`pipeline.watermark.register`)
@@ -134,9 +134,6 @@ def cascade(info, picked, deep_votes, deep_shape, quick_shape, explained_points=
         ``scan.deep_votes``, ``scan.deep_shape`` and ``scan.quick_shape``;
         None in ``deep_votes`` (or ``deep_shape``): every candidate may go
         deep; None in ``quick_shape``: every candidate gets the quick steps.
-    explained_points : int or None
-        ``scan.explained_points``, for the checks that follow
-        (:func:`explained`, :func:`held_to_quick`); it changes nothing here.
 
     Returns
     -------
@@ -154,44 +151,6 @@ def cascade(info, picked, deep_votes, deep_shape, quick_shape, explained_points=
         else:
             out[a] = None
     return out
-
-
-def explained(check, explained_points):
-    """Whether a check that accused no one laid the whole suspect on its original.
-
-    True when its registration leaves fewer than ``explained_points`` of the
-    suspect's points off the original (``off_points`` of
-    :func:`pipeline.orchestrate.attribute.check_asset`):
-    the suspect is that original, unmarked or marked under keys that do not
-    name anyone, and what is left is too small to hold any recipient's mark
-    (``scan.explained_points``).  None in ``explained_points``: never.
-    """
-    off = check.get("off_points")
-    return explained_points is not None and off is not None and off < explained_points
-
-
-def held_to_quick(info, queued, deep_votes):
-    """Which of the candidates still queued keep their deep steps once a check explained the suspect.
-
-    Every suspect point then lies on the explaining original, so another
-    asset can hold a part of the suspect only where its surface is that
-    original's, and there the suspect's local descriptors vote for it too:
-    a candidate keeps its deep steps when its vote share reaches
-    ``deep_votes`` (or it has none: not indexed); the others get the quick
-    steps, which still settle a near-identical asset holding the suspect whole.
-
-    Parameters
-    ----------
-    info : dict, from :func:`triage`
-    queued : list of str, asset keys
-    deep_votes : float or None
-
-    Returns
-    -------
-    dict of asset key -> bool (may go deep)
-    """
-    votes = dict(zip(info.get("index_ranking", []), info.get("index_votes", [])))
-    return {a: deep_votes is None or votes.get(a, float("inf")) >= deep_votes for a in queued}
 
 
 INDEX_FORMAT = "v5"   # v2: inverted-file cells; v3: whole and cut shape views; v4: and the dense view;

@@ -21,8 +21,7 @@ from ..io.ledger import Ledger
 from ..io.pointcloud import InputError, read_points, sha256_file
 from ..kernels.descriptor import d2_descriptor
 from .attribute import check_asset, decide, held_rows, original_files, unheld_copies, unheld_summary
-from .candidates import (build_index, candidates, cascade, explained, held_to_quick, load_index,
-                         planned_recipients, triage)
+from .candidates import build_index, candidates, cascade, load_index, planned_recipients, triage
 
 __all__ = ["detect_from_ledger", "candidate_groups"]
 
@@ -52,7 +51,7 @@ def _rank(suspect_path, groups, top_k, shape_margin, gates, store):
     """
 
     if len(groups) == 1:
-        return list(groups), dict.fromkeys(groups, "deep"), {}
+        return list(groups), dict.fromkeys(groups, "deep")
     keys = {f"{asset}@{sha[:16]}": (asset, sha) for asset, sha in groups}
     found = {g: original_files(groups[g], store=store)[0] for g in keys.values()}
     paths = {k: found[g].get(g[1], groups[g][-1]["source_path"]) for k, g in keys.items()}
@@ -62,10 +61,7 @@ def _rank(suspect_path, groups, top_k, shape_margin, gates, store):
     descriptors = {k: None if k in indexed else _whole_d2(paths[k]) for k in keys}   # D2 for what it lacks
     info = triage(suspect_path, descriptors, index_path)
     picked = candidates(info, set(keys), top_k, shape_margin)
-    stages = {keys[k]: s for k, s in cascade(info, picked, *gates).items()}
-    votes = {"index_ranking": [keys[k] for k in info["index_ranking"] if k in keys], "index_votes":
-             [v for k, v in zip(info["index_ranking"], info["index_votes"]) if k in keys]}
-    return [keys[k] for k in picked], stages, votes
+    return [keys[k] for k in picked], {keys[k]: s for k, s in cascade(info, picked, *gates).items()}
 
 
 def _whole_d2(path):
@@ -73,31 +69,22 @@ def _whole_d2(path):
     return d2_descriptor(points - points.mean(axis=0))
 
 
-def _check_in_order(suspect, candidates, stages, groups, materials, store, detect_params, votes=None, gates=None):
+def _check_in_order(suspect, candidates, stages, groups, materials, store, detect_params):
     """Check candidates best-ranked first and stop at the first match, as a scan does.
 
     The threshold counts every recipient of every candidate planned, those
     the cascade stops (``stages``) included, so neither stopping early nor
-    the cascade adds a chance to accuse.  Once a check explains the suspect
-    (:func:`pipeline.orchestrate.candidates.explained` at the fourth of
-    ``gates``), the candidates after it go deep only by their ``votes``
-    (:func:`pipeline.orchestrate.candidates.held_to_quick`).
+    the cascade adds a chance to accuse.
     """
 
     planned = planned_recipients([groups[c] for c in candidates], materials)
-    deep = {c: stages[c] == "deep" for c in candidates}
-    least = gates[3] if gates is not None and len(gates) > 3 else None
     checks = []
-    for i, c in enumerate(candidates):
+    for c in candidates:
         if stages[c] is None:
             continue
-        checks.append(check_asset(suspect, groups[c], materials, store, detect_params, deep=deep[c]))
+        checks.append(check_asset(suspect, groups[c], materials, store, detect_params, deep=stages[c] == "deep"))
         if decide(checks, detect_params.epsilon, planned=planned)["accused"]:
             break
-        if explained(checks[-1], least):
-            keep = held_to_quick(votes or {}, candidates[i + 1:], gates[0])
-            deep.update({a: deep[a] and keep[a] for a in keep})
-            least = None                      # the first explanation decides
     return {**decide(checks, detect_params.epsilon, planned=planned), "checks": checks}
 
 
@@ -112,7 +99,7 @@ def detect_from_ledger(suspect, ledger_dir, secret, detect_params, *, asset=None
     so parts of an asset and assets inside a scene are found as a scan
     finds them.  They are checked best-ranked first, up to the first match,
     each through the scan's cascade at ``gates`` ((deep_votes, deep_shape,
-    quick_shape, explained_points); "config": the config's ``scan`` values).
+    quick_shape); "config": the config's ``scan`` values).
 
     Returns
     -------
@@ -131,8 +118,8 @@ def detect_from_ledger(suspect, ledger_dir, secret, detect_params, *, asset=None
     top_k = search["top_k"] if top_k is None else top_k
     shape_margin = search["shape_margin"] if shape_margin is None else shape_margin
     gates = config.cascade_gates(defaults) if gates == "config" else gates
-    candidates, stages, votes = _rank(suspect, groups, top_k, shape_margin, gates, store)
-    result = _check_in_order(suspect, candidates, stages, groups, materials, store, detect_params, votes, gates)
+    candidates, stages = _rank(suspect, groups, top_k, shape_margin, gates, store)
+    result = _check_in_order(suspect, candidates, stages, groups, materials, store, detect_params)
     checks = result.pop("checks")
     unchecked = [line for c in checks for line in c["unchecked"]]
     if unchecked and result["verdict"] != "match":      # never "no match" while copies went unchecked

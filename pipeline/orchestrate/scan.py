@@ -77,8 +77,7 @@ from ..io.paths import check_apart, check_disjoint, source_folders
 from ..io.pointcloud import InputError, atomic_write_bytes, read_points, sha256_file
 from ..kernels.descriptor import d2_descriptor
 from .attribute import check_asset, decide, held_rows, original_files, params_from_row, unheld_copies, unheld_summary
-from .candidates import (build_index, candidates, cascade, explained, held_to_quick, load_index,
-                         planned_recipients, triage)
+from .candidates import build_index, candidates, cascade, load_index, planned_recipients, triage
 from .progress import Bar, Progress
 from .reference import load_reference
 
@@ -366,7 +365,7 @@ class _Work:
         info["checks"], info["errors"] = [], []
         stage = cascade(info, checked, *config_mod.cascade_gates(self.cfg))
         info["stopped"] = sum(stage[a] is None for a in checked)      # not registered at all
-        info["queue"] = [(a, view[a], [str(ref["paths"][a])] if a in ref["paths"] else [], stage[a] == "deep")
+        info["queue"] = [(view[a], [str(ref["paths"][a])] if a in ref["paths"] else [], stage[a] == "deep")
                          for a in checked if stage[a] is not None]
         if not self._submit_next(info):
             self._finished(info)
@@ -377,20 +376,8 @@ class _Work:
         else:
             info["errors"].append(_text(fut.exception()))
         matched = decide(info["checks"], self.detect_params.epsilon, _prior(info), info["planned"])["accused"]
-        if not matched and fut.status == "finished" and not info.get("explained"):
-            self._explained(info, info["checks"][-1])
         if matched or not self._submit_next(info):
             self._finished(info)
-
-    def _explained(self, info, check):
-        """The suspect is this check's original whole: the candidates left go deep only by their votes."""
-        deep_votes, _, _, least = config_mod.cascade_gates(self.cfg)
-        if not explained(check, least):
-            return
-        info["explained"] = check["asset_key"]
-        keep = held_to_quick(info, [q[0] for q in info["queue"]], deep_votes)
-        info["held"] = sum(deep and not keep[a] for a, _, _, deep in info["queue"])
-        info["queue"] = [(a, rows, places, deep and keep[a]) for a, rows, places, deep in info["queue"]]
 
     def _finished(self, info):
         verdict = _finish(self.out, self.versions, info, self.detect_params.epsilon, self.ref["store"],
@@ -407,7 +394,7 @@ class _Work:
         """
         if not info["queue"]:
             return False
-        _, rows, places, deep = info["queue"].pop(0)
+        rows, places, deep = info["queue"].pop(0)
         fut = self.client.submit(check_asset, os.path.abspath(info["path"]), rows, self.ref["materials"],
                                  os.path.abspath(self.ref["store"]), self.detect_params,
                                  places=[os.path.abspath(p) for p in places], deep=deep, pure=False, priority=1)
@@ -614,10 +601,6 @@ def _finish(out, versions, info, epsilon, store, keys_held):
         notes.append(f"{stopped} candidate original(s) stopped by the cascade: no whole copy found, and too "
                      f"few descriptor votes and too far in shape to hold a part of one (scan.deep_votes, "
                      f"deep_shape, quick_shape); their recipients count in the threshold")
-    if info.get("held"):
-        notes.append(f"the suspect lies whole on {info['explained']}'s original (scan.explained_points): "
-                     f"{info['held']} later candidate(s) with few descriptor votes got the quick registration "
-                     f"steps only")
     regs = [g["registration"] for c in info["checks"] for g in c["groups"]]
     # the accused's registration, else the best one (most overlap) of any candidate
     reg = top["registration"] if top else max(regs, key=lambda r: min(r.get("fitness", 0), r.get("coverage", 0)),

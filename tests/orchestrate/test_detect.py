@@ -93,36 +93,6 @@ def test_an_unmarked_original_is_no_match(issued):
     assert out["n_candidates_checked"] == len(out["candidates"]) == 2     # no match: every candidate checked
 
 
-def test_once_the_suspect_lies_whole_on_an_original_a_candidate_without_votes_gets_only_the_quick_steps(issued):
-    # an unmarked asset-0 explains itself; asset-1 (a torus), with a vote share under deep_votes,
-    # is not taken through the deep steps then: the quick ones leave it unscored, and its
-    # recipients still count in the threshold
-    from dataclasses import replace
-
-    from pipeline import config
-    from pipeline.orchestrate.detect import _check_in_order, candidate_groups
-    from pipeline.orchestrate.attribute import held_rows
-
-    tmp, ledger_dir = issued
-    points = read_points(tmp / "assets" / "asset-0.ply").points
-    write_array(tmp, "whole", attacks.apply_chain(points, [("random_similarity", None), ("shuffle", None)], 6), "ply")
-    rows, materials = held_rows(Ledger(ledger_dir), SECRET.encode())
-    groups = candidate_groups(rows)
-    order = sorted(groups)                       # asset-0's original first
-    votes = {"index_ranking": order, "index_votes": [0.5, 0.0]}
-    params = replace(config.detect_params(config.load_config()), **SMALL_DETECTION)
-
-    def check(least):
-        return _check_in_order(tmp / "whole.ply", order, dict.fromkeys(order, "deep"), groups, materials,
-                               ledger_dir / "bases", params, votes, (0.03, 0.05, None, least))
-
-    held, open_ = check(300), check(None)
-    assert held["checks"][0]["off_points"] < 300 and held["verdict"] == open_["verdict"] == "no match"
-    assert [c["stopped"] for c in held["checks"]] == [0, 1]
-    assert [c["stopped"] for c in open_["checks"]] == [0, 0]       # deep, it was registered and scored
-    assert held["n_checked"] == open_["n_checked"] == 4
-
-
 @pytest.mark.parametrize("secret, needle", [("8bytes!!", "at least 16"),
                                             ("a-different-secret-entirely", "matches none of the key")])
 def test_a_short_or_wrong_secret_is_refused(issued, secret, needle):

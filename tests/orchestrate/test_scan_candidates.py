@@ -1,7 +1,7 @@
 """Which catalogue assets a scan checks for a suspect, and in what order."""
 
 from pipeline.orchestrate.candidates import candidates as _candidates
-from pipeline.orchestrate.candidates import cascade, explained, held_to_quick
+from pipeline.orchestrate.candidates import cascade
 
 
 def _info(shape, distances, votes):
@@ -43,23 +43,6 @@ def test_the_cascade_sends_voted_or_near_candidates_deep_nearish_ones_quick_and_
     assert cascade({}, ["a"], 1.0, 0.0, 0.0) == {"a": "deep"}          # no index: deep
 
 
-def test_a_check_explains_the_suspect_only_when_fewer_than_the_floor_of_its_points_are_off_the_original():
-    assert explained({"off_points": 0}, 300)
-    assert explained({"off_points": 299}, 300)
-    assert not explained({"off_points": 300}, 300)
-    assert not explained({"off_points": None}, 300)       # nothing registered: nothing explained
-    assert not explained({}, 300)
-    assert not explained({"off_points": 0}, None)         # the rule off
-
-
-def test_once_explained_only_candidates_with_votes_keep_their_deep_steps():
-    info = {"index_ranking": ["twin", "far", "near"], "index_votes": [0.2, -0.01, 0.03]}
-    assert held_to_quick(info, ["twin", "far", "near", "unindexed"], 0.03) == {
-        "twin": True, "far": False, "near": True, "unindexed": True}
-    assert held_to_quick(info, ["far"], None) == {"far": True}     # the cascade off: nothing held
-    assert held_to_quick({}, ["a"], 0.03) == {"a": True}            # no index: deep
-
-
 def test_the_index_is_kept_by_its_bytes_hash_and_a_changed_file_is_never_served_stale(tmp_path):
     import numpy as np
     import pytest
@@ -83,20 +66,3 @@ def test_the_index_is_kept_by_its_bytes_hash_and_a_changed_file_is_never_served_
     assert load_index(path).keys == ["a", "b", "c"]
     with pytest.raises(ValueError, match="changed since the scan began"):
         load_index(path, "0" * 64)
-
-
-def test_a_scan_holds_the_candidates_after_an_explaining_check_to_the_quick_steps_by_their_votes():
-    from types import SimpleNamespace
-
-    from pipeline import config
-    from pipeline.orchestrate.scan import _Work
-
-    work = SimpleNamespace(cfg=config.load_config())       # deep_votes 0.03, explained_points 300
-    queue = [("b", ["rb"], [], True), ("c", ["rc"], [], True), ("d", ["rd"], [], False)]
-    info = {"index_ranking": ["a", "b", "c", "d"], "index_votes": [0.5, 0.0, 0.2, 0.0], "queue": list(queue)}
-    _Work._explained(work, info, {"asset_key": "a", "off_points": 12})
-    assert info["queue"] == [("b", ["rb"], [], False), ("c", ["rc"], [], True), ("d", ["rd"], [], False)]
-    assert info["explained"] == "a" and info["held"] == 1
-    left = {"index_ranking": ["a", "b"], "index_votes": [0.5, 0.0], "queue": list(queue)}
-    _Work._explained(work, left, {"asset_key": "a", "off_points": 5000})   # 5,000 points elsewhere: a scene
-    assert left["queue"] == queue and "explained" not in left
