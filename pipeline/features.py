@@ -659,6 +659,10 @@ class FeatureIndex:
         dense view (:func:`dense_view`).
     shape_owner : (V,) int32, optional
         Index into ``keys`` of each row of ``shapes``.
+    sources : list of str, optional
+        sha256 of the file each asset was described from (set by whoever
+        builds the index from files), so a later catalogue that holds the
+        same bytes can grow this index instead of describing them again.
     """
 
     keys: list
@@ -669,6 +673,7 @@ class FeatureIndex:
     ivf: object = None
     shapes: np.ndarray = None
     shape_owner: np.ndarray = None
+    sources: list = None
 
     @property
     def n_rows(self):
@@ -687,6 +692,8 @@ class FeatureIndex:
         extra = {"features": self.features} if self.ivf is None else {"ivf": _faiss().serialize_index(self.ivf)}
         if self.shapes is not None:
             extra.update(shapes=self.shapes, shape_owner=self.shape_owner)
+        if self.sources is not None:
+            extra.update(sources=np.array(self.sources, dtype=str))
         np.savez(buf, keys=np.array(self.keys, dtype=str), owner=self.owner,
                  hashes=np.array(self.hashes, dtype=str), prior=self.prior, **extra)
         return buf.getvalue()
@@ -697,8 +704,9 @@ class FeatureIndex:
         ivf = _faiss().deserialize_index(data["ivf"]) if "ivf" in data.files else None
         feats = data["features"] if "features" in data.files else None
         shapes = (data["shapes"], data["shape_owner"]) if "shapes" in data.files else (None, None)
+        sources = [str(h) for h in data["sources"]] if "sources" in data.files else None
         return cls([str(k) for k in data["keys"]], feats, data["owner"],
-                   [str(h) for h in data["hashes"]], data["prior"], ivf, *shapes)
+                   [str(h) for h in data["hashes"]], data["prior"], ivf, *shapes, sources)
 
     def with_ivf(self, *, rng=0):
         """This index searched through a faiss IVF (:func:`train_ivf`) trained on all its descriptors.

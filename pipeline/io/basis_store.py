@@ -32,7 +32,8 @@ import numpy as np
 
 from .pointcloud import atomic_write_bytes
 
-__all__ = ["BasisStore", "reference_params", "stand_in", "find_file", "read_file", "write_file", "STORE_VERSION"]
+__all__ = ["BasisStore", "reference_params", "stand_in", "find_file", "find_files", "read_file", "write_file",
+           "STORE_VERSION"]
 
 STORE_VERSION = 1
 _REFERENCE_FIELDS = ("n_bits", "crc_bits", "chip_rate", "first_coefficient", "valence", "n_clusters",
@@ -104,6 +105,29 @@ def find_file(folder, relative):
         except OSError:          # a stand-in this user cannot search: as if absent
             pass
     return found
+
+
+def find_files(folder, relative_glob):
+    """The existing files matching ``relative_glob`` in ``folder`` and, when it cannot be written, in its
+    stand-in (as :func:`find_file`), newest first.
+
+    Returns
+    -------
+    list of pathlib.Path
+    """
+    places = [Path(folder)]
+    if _refusal(folder) is not None:
+        try:
+            places.append(stand_in(folder))
+        except RuntimeError:
+            pass
+    found = []
+    for place in places:
+        try:
+            found += [(path.stat().st_mtime_ns, path) for path in place.glob(relative_glob) if path.is_file()]
+        except OSError:          # a stand-in this user cannot search: as if absent
+            pass
+    return [path for _, path in sorted(found, key=lambda x: (-x[0], str(x[1])))]
 
 
 def read_file(path):

@@ -18,7 +18,7 @@ from collections import OrderedDict
 
 import numpy as np
 
-from ..io.basis_store import find_file, read_file, write_file
+from ..io.basis_store import find_file, find_files, read_file, write_file
 from ..io.pointcloud import InputError, read_points, sha256_file
 from ..kernels.descriptor import d2_descriptor, descriptor_distance
 
@@ -169,7 +169,10 @@ def build_index(out, cat_version, catalogue_paths):
     """The catalogue's local-descriptor index, built once per catalogue version.
 
     Kept in ``out`` (a scan's folder, or the basis store for ``detect
-    --ledger``), or in its stand-in when ``out`` cannot be written.
+    --ledger``), or in its stand-in when ``out`` cannot be written.  A new
+    catalogue version grows the newest kept index whose every asset it still
+    holds with the same bytes (:meth:`~pipeline.features.FeatureIndex.extend`:
+    only the assets added are described); any other change builds it afresh.
     """
     from ..features import build_index as build
 
@@ -177,18 +180,45 @@ def build_index(out, cat_version, catalogue_paths):
     found = [p for p in find_file(out, name) if _loads(p)]      # a damaged one is rebuilt
     if found or not catalogue_paths:
         return str(found[0]) if found else None
-    clouds, missing = {}, []
+    clouds, sources, missing = {}, {}, []
     for key, file in sorted(catalogue_paths.items()):
         try:
-            clouds[key] = read_points(file).points
-        except InputError:
+            sources[key] = sha256_file(file)
+        except OSError:
             missing.append(key)          # its checks fail (and are retried); D2 still ranks it
-    if not clouds:
+    base = _grown_from(out, sources)
+    for key in sorted(set(sources) - set(base.keys if base else ())):
+        try:
+            clouds[key] = read_points(catalogue_paths[key]).points
+        except InputError:
+            missing.append(key)
+    if base is None and not clouds:
         return None
-    index = build(clouds)
+    if base is None:
+        index = build(clouds)
+    else:
+        index = base
+        if clouds:
+            index.extend(clouds)
+    index.sources = [sources[k] for k in index.keys]
     if missing:                          # not saved: the next scan builds it whole
         return str(write_file(out, f"state/.index-{cat_version}-partial.npz", index.to_bytes()))
     return str(write_file(out, name, index.to_bytes()))
+
+
+def _grown_from(out, sources):
+    """A fresh copy of the newest kept index whose assets ``sources`` (key -> sha256) all hold, with those
+    bytes; None when there is none."""
+    from ..features import FeatureIndex
+
+    for path in find_files(out, f"state/index-{INDEX_FORMAT}-*.npz"):
+        try:
+            index = FeatureIndex.load(io.BytesIO(read_file(path)))
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile):
+            continue
+        if index.sources is not None and all(sources.get(k) == h for k, h in zip(index.keys, index.sources)):
+            return index
+    return None
 
 
 def planned_recipients(candidate_rows, materials):

@@ -94,3 +94,13 @@ def test_a_store_path_that_is_a_file_stops_with_that_error(tmp_path, monkeypatch
     with pytest.raises(OSError):
         BasisStore(tmp_path / "bases").save_array("entry", "x", np.arange(2))
     assert not (tmp_path / "cache").exists()
+
+
+def test_find_files_lists_the_matching_files_newest_first(tmp_path):
+    from pipeline.io.basis_store import find_files, write_file
+
+    for i, name in enumerate(["index-v5-aa.npz", "index-v5-bb.npz", "other.npz"]):
+        path = write_file(tmp_path, f"state/{name}", b"x")
+        os.utime(path, ns=(10**18 + i * 10**9, 10**18 + i * 10**9))
+    assert [p.name for p in find_files(tmp_path, "state/index-v5-*.npz")] == ["index-v5-bb.npz", "index-v5-aa.npz"]
+    assert find_files(tmp_path / "absent", "state/*.npz") == []

@@ -66,3 +66,27 @@ def test_the_index_is_kept_by_its_bytes_hash_and_a_changed_file_is_never_served_
     assert load_index(path).keys == ["a", "b", "c"]
     with pytest.raises(ValueError, match="changed since the scan began"):
         load_index(path, "0" * 64)
+
+
+def test_a_new_catalogue_version_grows_the_kept_index_and_a_changed_asset_rebuilds_it(tmp_path):
+    import numpy as np
+
+    from pipeline.demo import procedural_shape
+    from pipeline.io.pointcloud import write_array
+    from pipeline.orchestrate.candidates import build_index, load_index
+
+    shapes = {"b": ("torus", 1), "c": ("shell", 2), "a": ("blob", 3)}
+    paths = {k: write_array(tmp_path / "assets", k, procedural_shape(kind, 2000, seed=s) * 10, "ply")
+             for k, (kind, s) in shapes.items()}
+    first = build_index(tmp_path / "out", "v1", {k: paths[k] for k in "bc"})
+    grown = build_index(tmp_path / "out", "v2", paths)             # "a" added: b and c are not described again
+    fresh = build_index(tmp_path / "fresh", "v2", paths)
+    one, two, new = load_index(first), load_index(grown), load_index(fresh)
+    assert one.keys == ["b", "c"] and two.keys == ["b", "c", "a"] and new.keys == ["a", "b", "c"]
+    assert two.sources == [new.sources[new.keys.index(k)] for k in two.keys]
+    suspect = procedural_shape("blob", 2000, seed=3) * 10
+    assert dict(two.rank(suspect, 3)) == dict(new.rank(suspect, 3))
+    assert np.allclose(two.shape_distances(suspect)[[2, 0, 1]], new.shape_distances(suspect))
+    # b's bytes change: the kept indexes no longer hold the catalogue, so v3 is described afresh
+    write_array(tmp_path / "assets", "b", procedural_shape("torus", 2000, seed=9) * 10, "ply", keep_existing=False)
+    assert load_index(build_index(tmp_path / "out", "v3", paths)).keys == ["a", "b", "c"]
