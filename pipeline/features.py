@@ -780,6 +780,19 @@ class FeatureIndex:
         if twice:
             raise ValueError(f"asset keys already indexed or given twice: {twice}")
 
+    def can_grow_to(self, n_assets):
+        """Whether :meth:`extend` to ``n_assets`` assets keeps the search as fast as a fresh index's.
+
+        An IVF's cells stay as trained, and a query searches :data:`IVF_PROBE`
+        of them: at more than four times the rows it was trained for (fewer
+        cells than half of sqrt(N)) each cell holds too many rows, and the
+        index is built afresh instead.  An exact index can always grow.
+        """
+        if self.ivf is None:
+            return True
+        rows = self.n_rows * n_assets / max(len(self.keys), 1)
+        return 2 * self.ivf.nlist >= np.sqrt(rows)
+
     def extend(self, clouds):
         """Add assets to the index in place, as :func:`build_index` would have indexed them.
 

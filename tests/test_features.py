@@ -154,6 +154,8 @@ def test_an_index_extended_with_more_assets_votes_as_one_built_from_all_of_them(
     whole = features.build_index({k: models[k] for k in first + rest})
     grown = features.build_index({k: models[k] for k in first})
     trained = grown.with_ivf()
+    # cells trained for some rows serve up to four times as many (half of sqrt(N) cells); beyond, build afresh
+    assert grown.can_grow_to(10**6) and trained.can_grow_to(3 * len(first)) and not trained.can_grow_to(5 * len(first))
     grown.extend({k: models[k] for k in rest})
     assert grown.keys == whole.keys and grown.hashes == whole.hashes and grown.ivf is None
     for name in ("features", "owner", "prior", "shapes", "shape_owner"):

@@ -208,7 +208,8 @@ def build_index(out, cat_version, catalogue_paths):
 
 def _grown_from(out, sources):
     """A fresh copy of the newest kept index whose assets ``sources`` (key -> sha256) all hold, with those
-    bytes; None when there is none."""
+    bytes, and that can grow to all of them (:meth:`~pipeline.features.FeatureIndex.can_grow_to`); None
+    when there is none."""
     from ..features import FeatureIndex
 
     for path in find_files(out, f"state/index-{INDEX_FORMAT}-*.npz"):
@@ -216,7 +217,8 @@ def _grown_from(out, sources):
             index = FeatureIndex.load(io.BytesIO(read_file(path)))
         except (OSError, ValueError, KeyError, zipfile.BadZipFile):
             continue
-        if index.sources is not None and all(sources.get(k) == h for k, h in zip(index.keys, index.sources)):
+        if (index.sources is not None and all(sources.get(k) == h for k, h in zip(index.keys, index.sources))
+                and index.can_grow_to(len(sources))):
             return index
     return None
 
