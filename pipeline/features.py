@@ -687,9 +687,30 @@ class FeatureIndex:
         atomic_write_bytes(path, self.to_bytes())
 
     def to_bytes(self):
-        """The index as the bytes of a ``.npz`` file (a faiss index as the uint8 array ``ivf``)."""
+        """The index as the bytes of one ``.npz`` file (a faiss index as the uint8 array ``ivf``)."""
+        return self._npz({"features": self.features} if self.ivf is None
+                         else {"ivf": _faiss().serialize_index(self.ivf)})
+
+    def to_parts(self):
+        """The index as the bytes of a ``.npz`` file and of its faiss index apart (None for an exact index).
+
+        The ``.npz`` records the faiss bytes' sha256 (``ivf_sha256``), so that
+        file's own hash covers both; kept apart, the faiss index can be
+        memory-mapped (:meth:`load` with ``open_ivf``) and shared by every
+        process that searches it.
+
+        Returns
+        -------
+        npz : bytes
+        ivf : bytes or None
+        """
+        if self.ivf is None:
+            return self.to_bytes(), None
+        ivf = _faiss().serialize_index(self.ivf).tobytes()
+        return self._npz({"ivf_sha256": np.array(hashlib.sha256(ivf).hexdigest())}), ivf
+
+    def _npz(self, extra):
         buf = io.BytesIO()
-        extra = {"features": self.features} if self.ivf is None else {"ivf": _faiss().serialize_index(self.ivf)}
         if self.shapes is not None:
             extra.update(shapes=self.shapes, shape_owner=self.shape_owner)
         if self.sources is not None:
@@ -699,9 +720,21 @@ class FeatureIndex:
         return buf.getvalue()
 
     @classmethod
-    def load(cls, path):
+    def load(cls, path, open_ivf=None):
+        """An index from a ``.npz`` file (path or file object).
+
+        ``open_ivf(sha256)`` returns the faiss index that :meth:`to_parts`
+        kept apart (mapped) or its bytes, given the sha256 the ``.npz``
+        recorded for it: it finds the file and checks it.
+        """
         data = np.load(path)
         ivf = _faiss().deserialize_index(data["ivf"]) if "ivf" in data.files else None
+        if "ivf_sha256" in data.files:
+            if open_ivf is None:
+                raise ValueError(f"{path}: the index's faiss part is kept apart: give open_ivf")
+            ivf = open_ivf(str(data["ivf_sha256"]))
+            if isinstance(ivf, (bytes, bytearray)):
+                ivf = _faiss().deserialize_index(np.frombuffer(ivf, dtype=np.uint8))
         feats = data["features"] if "features" in data.files else None
         shapes = (data["shapes"], data["shape_owner"]) if "shapes" in data.files else (None, None)
         sources = [str(h) for h in data["sources"]] if "sources" in data.files else None
@@ -753,6 +786,11 @@ class FeatureIndex:
         shapes : list of (V_i, D2_BINS) float, optional, per asset
         """
         self._refuse_indexed(keys)
+        faiss = _faiss() if self.ivf is not None else None
+        if faiss is not None and not isinstance(faiss.downcast_InvertedLists(self.ivf.invlists),
+                                                faiss.ArrayInvertedLists):
+            # faiss aborts the process on an add to mapped lists: refuse before it is reached
+            raise ValueError("a memory-mapped index cannot grow: load it whole (FeatureIndex.load, read, not mapped)")
         first = len(self.keys)
         feats = (np.concatenate(descriptors).astype(np.float32) if descriptors
                  else np.zeros((0, 33), dtype=np.float32))

@@ -32,8 +32,8 @@ import numpy as np
 
 from .pointcloud import atomic_write_bytes
 
-__all__ = ["BasisStore", "reference_params", "stand_in", "find_file", "find_files", "read_file", "write_file",
-           "STORE_VERSION"]
+__all__ = ["BasisStore", "reference_params", "stand_in", "find_file", "find_files", "read_file", "map_faiss",
+           "write_file", "STORE_VERSION"]
 
 STORE_VERSION = 1
 _REFERENCE_FIELDS = ("n_bits", "crc_bits", "chip_rate", "first_coefficient", "valence", "n_clusters",
@@ -133,6 +133,14 @@ def find_files(folder, relative_glob):
 def read_file(path):
     """The bytes of a file :func:`find_file` found (an index, a kept state file)."""
     return Path(path).read_bytes()
+
+
+def map_faiss(path):
+    """A faiss IVF index file memory-mapped, read-only: its inverted lists stay on disk, shared by every
+    process that maps them (faiss ``IO_FLAG_MMAP``); it cannot grow."""
+    import faiss
+
+    return faiss.read_index(str(path), faiss.IO_FLAG_MMAP | faiss.IO_FLAG_READ_ONLY)
 
 
 def write_file(folder, relative, data):

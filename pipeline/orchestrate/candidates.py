@@ -15,10 +15,11 @@ import io
 import time
 import zipfile
 from collections import OrderedDict
+from pathlib import Path
 
 import numpy as np
 
-from ..io.basis_store import find_file, find_files, read_file, write_file
+from ..io.basis_store import find_file, find_files, map_faiss, read_file, write_file
 from ..io.pointcloud import InputError, read_points, sha256_file
 from ..kernels.descriptor import d2_descriptor, descriptor_distance
 
@@ -47,10 +48,28 @@ def load_index(path, sha256=None):
     if key in _INDEXES:
         _INDEXES.move_to_end(key)
     else:
-        _INDEXES[key] = FeatureIndex.load(io.BytesIO(data))
+        _INDEXES[key] = FeatureIndex.load(io.BytesIO(data), _ivf_part(path, mapped=True))
         while len(_INDEXES) > 2:
             _INDEXES.popitem(last=False)
     return _INDEXES[key]
+
+
+def _ivf_part(path, mapped):
+    """``open_ivf`` of :meth:`~pipeline.features.FeatureIndex.load` for the index at ``path``: its faiss
+    part (``.ivf`` beside it), checked against the sha256 the index recorded, memory-mapped or read."""
+    part = Path(path).with_suffix(".ivf")
+
+    def open_ivf(sha256):
+        try:
+            found = sha256_file(part)
+        except OSError as exc:
+            raise ValueError(f"{part}: the candidate index's faiss part cannot be read: {exc.strerror or exc}") from None
+        if found != sha256:
+            raise ValueError(f"{part}: the candidate index's faiss part differs from what the index recorded "
+                             f"(sha256)")
+        return map_faiss(part) if mapped else read_file(part)
+
+    return open_ivf
 
 
 MIN_POINTS = 16     # under this a suspect's shape and marks cannot be measured: failed, never ranked
@@ -153,8 +172,9 @@ def cascade(info, picked, deep_votes, deep_shape, quick_shape):
     return out
 
 
-INDEX_FORMAT = "v5"   # v2: inverted-file cells; v3: whole and cut shape views; v4: and the dense view;
-                      # v5: a faiss IVF instead of the inverted file, from features.IVF_MIN rows
+INDEX_FORMAT = "v6"   # v2: inverted-file cells; v3: whole and cut shape views; v4: and the dense view;
+                      # v5: a faiss IVF instead of the inverted file, from features.IVF_MIN rows;
+                      # v6: the IVF in its own file beside (.ivf), memory-mapped; each asset's file sha256
 
 
 def _loads(index_path):
@@ -202,8 +222,17 @@ def build_index(out, cat_version, catalogue_paths):
             index.extend(clouds)
     index.sources = [sources[k] for k in index.keys]
     if missing:                          # not saved: the next scan builds it whole
-        return str(write_file(out, f"state/.index-{cat_version}-partial.npz", index.to_bytes()))
-    return str(write_file(out, name, index.to_bytes()))
+        return _save(out, f"state/.index-{cat_version}-partial.npz", index)
+    return _save(out, name, index)
+
+
+def _save(out, name, index):
+    """Write an index as its ``.npz`` and, for an IVF, its faiss part beside it (first: a ``.npz`` found
+    always has its part); the ``.npz``'s path."""
+    npz, ivf = index.to_parts()
+    if ivf is not None:
+        write_file(out, name[: -len(".npz")] + ".ivf", ivf)
+    return str(write_file(out, name, npz))
 
 
 def _grown_from(out, sources):
@@ -214,7 +243,7 @@ def _grown_from(out, sources):
 
     for path in find_files(out, f"state/index-{INDEX_FORMAT}-*.npz"):
         try:
-            index = FeatureIndex.load(io.BytesIO(read_file(path)))
+            index = FeatureIndex.load(io.BytesIO(read_file(path)), _ivf_part(path, mapped=False))
         except (OSError, ValueError, KeyError, zipfile.BadZipFile):
             continue
         if (index.sources is not None and all(sources.get(k) == h for k, h in zip(index.keys, index.sources))

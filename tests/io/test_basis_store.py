@@ -99,8 +99,8 @@ def test_a_store_path_that_is_a_file_stops_with_that_error(tmp_path, monkeypatch
 def test_find_files_lists_the_matching_files_newest_first(tmp_path):
     from pipeline.io.basis_store import find_files, write_file
 
-    for i, name in enumerate(["index-v5-aa.npz", "index-v5-bb.npz", "other.npz"]):
+    for i, name in enumerate(["index-v6-aa.npz", "index-v6-bb.npz", "other.npz"]):
         path = write_file(tmp_path, f"state/{name}", b"x")
         os.utime(path, ns=(10**18 + i * 10**9, 10**18 + i * 10**9))
-    assert [p.name for p in find_files(tmp_path, "state/index-v5-*.npz")] == ["index-v5-bb.npz", "index-v5-aa.npz"]
+    assert [p.name for p in find_files(tmp_path, "state/index-v6-*.npz")] == ["index-v6-bb.npz", "index-v6-aa.npz"]
     assert find_files(tmp_path / "absent", "state/*.npz") == []

@@ -90,3 +90,33 @@ def test_a_new_catalogue_version_grows_the_kept_index_and_a_changed_asset_rebuil
     # b's bytes change: the kept indexes no longer hold the catalogue, so v3 is described afresh
     write_array(tmp_path / "assets", "b", procedural_shape("torus", 2000, seed=9) * 10, "ply", keep_existing=False)
     assert load_index(build_index(tmp_path / "out", "v3", paths)).keys == ["a", "b", "c"]
+
+
+def test_an_ivf_index_is_kept_in_two_files_searched_memory_mapped_and_checked_by_its_hash(tmp_path):
+    import faiss
+    import pytest
+
+    from pipeline import features
+    from pipeline.demo import procedural_shape
+    from pipeline.io.basis_store import write_file
+    from pipeline.orchestrate import candidates as cand
+
+    clouds = {k: procedural_shape(kind, 2000, seed=s) * 10 for k, kind, s in
+              (("a", "blob", 1), ("b", "torus", 2), ("c", "shell", 3))}
+    index = features.build_index(clouds, ivf=True)
+    npz, ivf = index.to_parts()
+    write_file(tmp_path, "state/index-v6-x.ivf", ivf)
+    path = write_file(tmp_path, "state/index-v6-x.npz", npz)
+    mapped = cand.load_index(path)
+    assert isinstance(faiss.downcast_InvertedLists(mapped.ivf.invlists), faiss.OnDiskInvertedLists)
+    suspect = procedural_shape("torus", 2000, seed=2) * 10
+    assert mapped.rank(suspect, 3) == index.rank(suspect, 3) and mapped.rank(suspect, 1)[0][0] == "b"
+    with pytest.raises(ValueError, match="memory-mapped"):          # never faiss's abort
+        mapped.extend({"d": procedural_shape("blob", 2000, seed=4)})
+    cand._INDEXES.clear()
+    (tmp_path / "state" / "index-v6-x.ivf").write_bytes(ivf[:-1] + bytes([ivf[-1] ^ 1]))
+    with pytest.raises(ValueError, match="differs from what the index recorded"):
+        cand.load_index(path)
+    (tmp_path / "state" / "index-v6-x.ivf").unlink()
+    with pytest.raises(ValueError, match="cannot be read"):
+        cand.load_index(path)
