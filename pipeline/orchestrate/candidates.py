@@ -243,11 +243,15 @@ def _grown_from(out, sources):
 
     for path in find_files(out, f"state/index-{INDEX_FORMAT}-*.npz"):
         try:
-            index = FeatureIndex.load(io.BytesIO(read_file(path)), _ivf_part(path, mapped=False))
+            data = read_file(path)
+            held = np.load(io.BytesIO(data))       # its keys and sources first: no faiss part read in vain
+            if "sources" not in held.files or any(sources.get(str(k)) != str(h)
+                                                  for k, h in zip(held["keys"], held["sources"])):
+                continue
+            index = FeatureIndex.load(io.BytesIO(data), _ivf_part(path, mapped=False))
         except (OSError, ValueError, KeyError, zipfile.BadZipFile):
             continue
-        if (index.sources is not None and all(sources.get(k) == h for k, h in zip(index.keys, index.sources))
-                and index.can_grow_to(len(sources))):
+        if index.can_grow_to(len(sources)):
             return index
     return None
 
