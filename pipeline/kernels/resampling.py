@@ -307,12 +307,20 @@ def _solve_cluster(original, normals, deformed, points, targets, reliable, membe
 
 
 def _normal_matrix_from_gram(gram, counts, normals, basis):
-    """sum_j counts_j g_j g_j^T = G^T G + G_d^T diag(counts - 1) G_d over the points with counts != 1.
+    """sum_j counts_j g_j g_j^T, from whichever takes fewer rows of g_j = [n_j,x e_j | n_j,y e_j | n_j,z e_j].
 
-    ``counts`` (n_c,): matches (kept) per cluster point.
+    G^T G + G_d^T diag(counts - 1) G_d over the points with counts != 1 (a
+    whole copy: nearly every point matched once), or the sum itself over the
+    points matched at all (a part of the original, or a shape that is not
+    it, lying on a few of the cluster's points).  ``counts`` (n_c,): matches
+    (kept) per cluster point.
     """
     other = np.flatnonzero(counts != 1)
     if len(other) == 0:
         return gram.copy()
+    matched = np.flatnonzero(counts)
+    if len(matched) < len(other):
+        g = np.concatenate([normals[matched, a:a + 1] * basis[matched] for a in range(3)], axis=1)
+        return g.T @ (counts[matched][:, None] * g)
     g = np.concatenate([normals[other, a:a + 1] * basis[other] for a in range(3)], axis=1)
     return gram + g.T @ ((counts[other] - 1.0)[:, None] * g)

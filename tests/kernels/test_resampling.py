@@ -146,8 +146,9 @@ def test_trimming_keeps_the_mark_beside_an_unmarked_original():
         fit_spectral_displacement(original, normals, suspect, members, [basis], **FIT, trim=0.5)
 
 
+@pytest.mark.parametrize("few", [False, True])
 @pytest.mark.parametrize("trim", [None, 3.0])
-def test_the_normal_model_gram_shortcut_equals_the_full_normal_equations(trim):
+def test_the_normal_model_gram_shortcut_equals_the_full_normal_equations(trim, few):
     """Points matched 0, 1 or 3 times, some trimmed: G^T G plus the update at those points is the full sum."""
     from pipeline.kernels import resampling
 
@@ -158,6 +159,8 @@ def test_the_normal_model_gram_shortcut_equals_the_full_normal_equations(trim):
     members = np.arange(100, 500)
     basis = np.linalg.qr(rng.normal(size=(400, 24)))[0]
     targets = np.concatenate([members[:300], np.repeat(members[300:320], 3)])     # 80 never matched
+    if few:                              # a piece lying on a tenth of the cluster: the sum taken directly
+        targets = np.concatenate([members[:30], np.repeat(members[30:40], 2)])
     points = original[targets] + 0.01 * rng.normal(size=(len(targets), 3))
     points[::25] += 0.2 * normals[targets[::25]]                                   # trimmed at 3
     none = np.zeros(len(targets), dtype=bool)
