@@ -149,6 +149,8 @@ def _processes(index, suspects):
     from pipeline.io.basis_store import write_file
 
     out = {}
+    if index.prior is None:                        # (votes do not use it; the file holds one)
+        index.prior = np.zeros(len(index.keys))
     with tempfile.TemporaryDirectory() as tmp:
         npz, ivf = index.to_parts()
         write_file(tmp, "index.ivf", ivf)
