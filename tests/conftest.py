@@ -141,7 +141,8 @@ def own_cluster(monkeypatch):
 
 
 class ScanIndexes:
-    """The scan's feature index per catalogue version (``scan.out/state/index-*.npz``), kept for the session.
+    """The scan's feature index per catalogue version (``scan.out/state/index-*.npz``, with its ``.ivf``
+    part for a large catalogue), kept for the session.
 
     A scan builds the index of its catalogue into each new ``scan.out``; the small worlds of the
     scan tests are the same catalogue bytes every time, so a later scan into a new ``scan.out`` is
@@ -154,14 +155,14 @@ class ScanIndexes:
 
     def seed(self, out):
         out = Path(out)
-        for index in self.folder.glob("index-*.npz"):
+        for index in self.folder.glob("index-*"):
             target = out / "state" / index.name
             if not target.exists():
                 target.parent.mkdir(parents=True, exist_ok=True)
                 shutil.copyfile(index, target)
 
     def keep(self, out):
-        for index in (Path(out) / "state").glob("index-*.npz"):
+        for index in (Path(out) / "state").glob("index-*"):
             if not (self.folder / index.name).exists():
                 shutil.copyfile(index, self.folder / index.name)
 
