@@ -294,14 +294,22 @@ SCAN = _section("Leak-detection scans (pointmark scan).", {
                      "The scan's cascade (docs/method.md, Leak scans): a candidate may go on to the deep "
                      "registration steps (global RANSAC, the rotation search: 10 to 100 times the cost of the "
                      "quick ones) when its share of the suspect's descriptor votes, less its background share, "
-                     "reaches this, or when its shape distance is within deep_shape.  0.03 and 0.05 lose no "
-                     "leak of the leak benchmark's 217 (the nearest at 0.042 votes, 0.043 shape) and spare "
-                     "innocents a quarter to a third of their deep checks.  null: every candidate may.",
+                     "reaches this (its own or a twin's, twin_shape), or when its shape distance is within "
+                     "deep_shape.  Calibrated on the leak benchmark's 217 leaks (bench/RESULTS.md, \"The cascade "
+                     "lost two leaks\").  null: every candidate may.",
                      minimum=-1, maximum=1),
-    "deep_shape": _p(("number", "null"), 0.05,
+    "deep_shape": _p(("number", "null"), 0.06,
                      "The scan's cascade: shape-distribution distance (the nearest of the suspect's views, "
                      "whole, without outliers, object by object, to the asset's, whole or cut) within which a "
-                     "candidate may go on to the deep steps whatever its votes.  null: every candidate may.",
+                     "candidate may go on to the deep steps whatever its votes.  At 0.05 the cascade lost a "
+                     "half crop of a shell with noise (0.053 shape, 0.026 votes).  null: every candidate may.",
+                     minimum=0, maximum=1000),
+    "twin_shape": _p(("number", "null"), 0.03,
+                     "The scan's cascade: assets whose whole views lie within this shape-distribution distance "
+                     "of each other are one shape sampled otherwise (a bunny at 8,171 and at 1,889 points: "
+                     "0.029); the descriptor votes they split count for each of them at deep_votes.  Without it "
+                     "the cascade lost one leak of the benchmark's 217 (a 30 % crop of the 1,889-point bunny, "
+                     "0.001 of the votes, its 8,171-point twin 0.169).  null: no votes are lent.",
                      minimum=0, maximum=1000),
     "quick_shape": _p(("number", "null"), None,
                       "The scan's cascade: a candidate that may not go deep gets the quick registration steps "
@@ -805,9 +813,9 @@ def detect_params(cfg):
 
 
 def cascade_gates(cfg):
-    """(deep_votes, deep_shape, quick_shape) of a validated config: the scan's cascade (scan, detect --ledger)."""
+    """(deep_votes, deep_shape, quick_shape, twin_shape) of a validated config: the scan's cascade (scan, detect --ledger)."""
     sc = cfg["scan"]
-    return sc["deep_votes"], sc["deep_shape"], sc["quick_shape"]
+    return sc["deep_votes"], sc["deep_shape"], sc["quick_shape"], sc["twin_shape"]
 
 
 def dataclass_keys():

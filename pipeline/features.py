@@ -871,6 +871,36 @@ class FeatureIndex:
             np.minimum.at(out, self.shape_owner, d)
         return out
 
+    def twins(self, lenders, within):
+        """Assets of the same shape as each lender, sampled otherwise: whole views within ``within``.
+
+        The ratio test of :meth:`votes` splits a suspect's votes among such
+        assets (a bunny at 8,000 and at 1,900 points), so one of them may
+        draw almost none of the votes that its twin draws.
+
+        Parameters
+        ----------
+        lenders : list of str, asset keys
+        within : float, D2 distance between the assets' whole views (:func:`d2_descriptor`)
+
+        Returns
+        -------
+        dict of lender key -> list of [asset key, distance], the lender left out
+        """
+        if self.shapes is None or not lenders:
+            return {}
+        owners, first = np.unique(self.shape_owner, return_index=True)   # an asset's whole view comes first
+        whole = self.shapes[first]
+        out = {}
+        for key in lenders:
+            row = np.flatnonzero(owners == self.keys.index(key))
+            if len(row) == 0:
+                continue
+            d = np.atleast_1d(descriptor_distance(whole[row[0]], whole))
+            out[key] = [[self.keys[owners[j]], float(d[j])] for j in np.argsort(d, kind="stable")
+                        if d[j] <= within and owners[j] != owners[row[0]]]
+        return out
+
     def exact(self, points):
         """Asset keys whose geometry hash equals the suspect's (re-saves, re-orderings)."""
         h = geometry_hash(points)

@@ -175,6 +175,19 @@ def test_an_index_extended_with_more_assets_votes_as_one_built_from_all_of_them(
         trained.extend({first[0]: models[first[0]]})
 
 
+def test_one_shape_sampled_twice_are_twins_and_other_shapes_are_not(shared_data, models):
+    clouds = {k: models[k] for k in ("kitten_12623", "nikolov_owl_12442", "pcl_tum_rabbit_10429")}
+    clouds.update({k: read_points(shared_data / "models" / f"{k}.ply").points
+                   for k in ("bunny_res2_8171", "bunny_res3_1889")})
+    index = features.build_index(clouds)
+    twins = index.twins(list(clouds), 0.03)
+    assert [k for k, _ in twins["bunny_res2_8171"]] == ["bunny_res3_1889"]
+    assert [k for k, _ in twins["bunny_res3_1889"]] == ["bunny_res2_8171"]
+    assert twins["kitten_12623"] == [] and twins["nikolov_owl_12442"] == []
+    assert twins["bunny_res2_8171"][0][1] == pytest.approx(twins["bunny_res3_1889"][0][1])
+    assert index.twins(["bunny_res2_8171"], 0.0) == {"bunny_res2_8171": []}
+
+
 def test_outlier_and_clutter_attacks_are_parsed_and_keep_the_asset_first():
     pts = demo.procedural_shape("torus", 3000, seed=1)
     assert surface.parse_attack("outliers:0.5") == ("outliers", 0.5)

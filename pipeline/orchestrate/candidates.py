@@ -26,6 +26,8 @@ from ..kernels.descriptor import d2_descriptor, descriptor_distance
 __all__ = ["triage", "candidates", "cascade", "build_index", "load_index", "planned_recipients", "INDEX_FORMAT", "MIN_POINTS"]
 
 
+TWIN_LENDERS = 10    # the assets with the most votes, whose twins (same shape, other sampling) share them
+
 _INDEXES: "OrderedDict[str, object]" = OrderedDict()    # sha256 of an index file -> its FeatureIndex
 
 
@@ -75,7 +77,7 @@ def _ivf_part(path, mapped):
 MIN_POINTS = 16     # under this a suspect's shape and marks cannot be measured: failed, never ranked
 
 
-def triage(suspect_path, descriptors, index_path, index_sha256=None):
+def triage(suspect_path, descriptors, index_path, index_sha256=None, twin_shape=None):
     """Read a suspect, hash it, rank every catalogue asset two ways.
 
     ``ranking``: by shape distribution (D2), the suspect's views (it whole,
@@ -84,18 +86,23 @@ def triage(suspect_path, descriptors, index_path, index_sha256=None):
     scenes, outliers and crops; ``index_ranking``: by votes of local descriptors (FPFH) over the
     catalogue index, right for parts of an asset and assets inside a scene;
     ``index_votes``: each one's share of the suspect's descriptors less its
-    background share (inf for an exact geometry hash).
+    background share (inf for an exact geometry hash); ``twins``: for the
+    :data:`TWIN_LENDERS` assets with the most votes, the assets whose whole
+    view lies within ``twin_shape`` of theirs (:meth:`FeatureIndex.twins`;
+    None: none), which :func:`cascade` lends their votes.
     """
     t0 = time.perf_counter()
     points = read_points(suspect_path).points
     if len(points) < MIN_POINTS:
         raise InputError(f"{suspect_path}: {len(points)} point(s): too few to hold a watermark (at least {MIN_POINTS})")
     names = list(descriptors)
-    shaped, voted = {}, []
+    shaped, voted, twins = {}, [], {}
     if index_path:
         index = load_index(index_path, index_sha256)
         shaped = dict(zip(index.keys, index.shape_distances(points)))
         voted = index.rank(points, top_k=len(names))
+        if twin_shape is not None:
+            twins = index.twins([k for k, _ in voted[:TWIN_LENDERS]], twin_shape)
     # assets the index lacks (unreadable when it was built) keep the catalogue's whole-asset D2
     missing = [k for k in names if k not in shaped]
     if missing:
@@ -106,7 +113,7 @@ def triage(suspect_path, descriptors, index_path, index_sha256=None):
     order = np.argsort(dist, kind="stable")
     return {"path": str(suspect_path), "sha256": sha256_file(suspect_path), "n_points": len(points),
             "ranking": [names[i] for i in order], "distances": [float(dist[i]) for i in order],
-            "index_ranking": [k for k, _ in voted], "index_votes": [v for _, v in voted],
+            "index_ranking": [k for k, _ in voted], "index_votes": [v for _, v in voted], "twins": twins,
             "seconds": time.perf_counter() - t0}
 
 
@@ -136,8 +143,10 @@ def cascade(info, picked, deep_votes, deep_shape, quick_shape):
     shows in its triage either way: a crop's local descriptors vote for its
     asset, a crop or a copy in junk has a view (cut, dense, object by
     object) near the asset's in shape distribution.  So a candidate goes
-    "deep" when its vote share (less its background share) reaches
-    ``deep_votes`` or its shape distance is at most ``deep_shape``; else
+    "deep" when its vote share (less its background share), or that of an
+    asset of the same shape sampled otherwise (the triage's ``twins``: the
+    ratio test splits their votes), reaches ``deep_votes``, or its shape
+    distance is at most ``deep_shape``; else
     "quick" (the quick steps only; if they leave it undecided it is not
     scored) when its shape distance is at most ``quick_shape``; else it is
     not registered at all (None).  A candidate without votes or a shape
@@ -160,9 +169,13 @@ def cascade(info, picked, deep_votes, deep_shape, quick_shape):
     """
     votes = dict(zip(info.get("index_ranking", []), info.get("index_votes", [])))
     shape = dict(zip(info.get("ranking", []), info.get("distances", [])))
+    lent = {}
+    for lender, near in info.get("twins", {}).items():
+        for a, _ in near:
+            lent[a] = max(lent.get(a, -np.inf), votes[lender])
     out = {}
     for a in picked:
-        v, d = votes.get(a, float("inf")), shape.get(a, 0.0)
+        v, d = max(votes.get(a, float("inf")), lent.get(a, -np.inf)), shape.get(a, 0.0)
         if deep_votes is None or deep_shape is None or v >= deep_votes or d <= deep_shape:
             out[a] = "deep"
         elif quick_shape is None or d <= quick_shape:

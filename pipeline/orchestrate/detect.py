@@ -47,7 +47,8 @@ def _rank(suspect_path, groups, top_k, shape_margin, gates, store):
     all returned, ranked, so the first match comes early.  Returns (asset,
     source sha256) keys, and how far each one's check may go
     (:func:`pipeline.orchestrate.candidates.cascade` at ``gates``, the
-    config's ``deep_votes``, ``deep_shape`` and ``quick_shape``; "deep" for one original).
+    config's ``deep_votes``, ``deep_shape``, ``quick_shape`` and
+    ``twin_shape``; "deep" for one original).
     """
 
     if len(groups) == 1:
@@ -59,9 +60,10 @@ def _rank(suspect_path, groups, top_k, shape_margin, gates, store):
     index_path = build_index(store, version, paths)
     indexed = set(load_index(index_path).keys) if index_path else set()
     descriptors = {k: None if k in indexed else _whole_d2(paths[k]) for k in keys}   # D2 for what it lacks
-    info = triage(suspect_path, descriptors, index_path)
+    *stage_gates, twin_shape = gates
+    info = triage(suspect_path, descriptors, index_path, twin_shape=twin_shape)
     picked = candidates(info, set(keys), top_k, shape_margin)
-    return [keys[k] for k in picked], {keys[k]: s for k, s in cascade(info, picked, *gates).items()}
+    return [keys[k] for k in picked], {keys[k]: s for k, s in cascade(info, picked, *stage_gates).items()}
 
 
 def _whole_d2(path):
@@ -99,7 +101,7 @@ def detect_from_ledger(suspect, ledger_dir, secret, detect_params, *, asset=None
     so parts of an asset and assets inside a scene are found as a scan
     finds them.  They are checked best-ranked first, up to the first match,
     each through the scan's cascade at ``gates`` ((deep_votes, deep_shape,
-    quick_shape); "config": the config's ``scan`` values).
+    quick_shape, twin_shape); "config": the config's ``scan`` values).
 
     Returns
     -------

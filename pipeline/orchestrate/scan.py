@@ -324,7 +324,8 @@ class _Work:
             if p in done:
                 self.tally("skipped")
                 continue
-            fut = self.client.submit(triage, os.path.abspath(p), self.descriptors, *self.index, pure=False)
+            fut = self.client.submit(triage, os.path.abspath(p), self.descriptors, *self.index,
+                                     twin_shape=self.cfg["scan"]["twin_shape"], pure=False)
             self.triages[fut] = p
             self.pending.add(fut)
 
@@ -363,7 +364,7 @@ class _Work:
         # neither adds a chance to accuse
         info["planned"] = planned_recipients([view[a] for a in checked], ref["materials"])
         info["checks"], info["errors"] = [], []
-        stage = cascade(info, checked, *config_mod.cascade_gates(self.cfg))
+        stage = cascade(info, checked, *config_mod.cascade_gates(self.cfg)[:3])
         info["stopped"] = sum(stage[a] is None for a in checked)      # not registered at all
         info["queue"] = [(view[a], [str(ref["paths"][a])] if a in ref["paths"] else [], stage[a] == "deep")
                          for a in checked if stage[a] is not None]

@@ -43,6 +43,17 @@ def test_the_cascade_sends_voted_or_near_candidates_deep_nearish_ones_quick_and_
     assert cascade({}, ["a"], 1.0, 0.0, 0.0) == {"a": "deep"}          # no index: deep
 
 
+def test_a_candidate_takes_the_votes_of_its_twins_and_no_one_else_s():
+    # the ratio test splits votes between one shape sampled twice: "b" is "a" at another sampling
+    info = {"index_ranking": ["a", "b", "c"], "index_votes": [0.17, 0.001, 0.2],
+            "ranking": ["a", "b", "c"], "distances": [0.09, 0.09, 0.4], "twins": {"a": [["b", 0.029]], "c": []}}
+    assert cascade(info, ["a", "b", "c"], 0.03, 0.05, None) == dict.fromkeys("abc", "deep")
+    assert cascade({**info, "twins": {}}, ["a", "b", "c"], 0.03, 0.05, None) == {"a": "deep", "b": "quick", "c": "deep"}
+    # a twin lends the votes it has, not more
+    low = {**info, "index_votes": [0.02, 0.001, 0.2]}
+    assert cascade(low, ["b"], 0.03, 0.05, None) == {"b": "quick"}
+
+
 def test_the_index_is_kept_by_its_bytes_hash_and_a_changed_file_is_never_served_stale(tmp_path):
     import numpy as np
     import pytest
