@@ -298,6 +298,7 @@ class _Work:
         self.client, self.cfg, self.ref, self.out, self.versions = client, cfg, ref, out, versions
         self.state, self.previous, self.descriptors = state, previous, descriptors
         self.detect_params = config_mod.detect_params(cfg)
+        *self.gates, self.twin_shape = config_mod.cascade_gates(cfg)
         # absolute paths: a worker of an existing cluster has its own working directory; the index's
         # hash, taken once here, spares each triage reading and hashing the index again
         self.index = (os.path.abspath(index_path), sha256_file(index_path)) if index_path else (None, None)
@@ -325,7 +326,7 @@ class _Work:
                 self.tally("skipped")
                 continue
             fut = self.client.submit(triage, os.path.abspath(p), self.descriptors, *self.index,
-                                     twin_shape=self.cfg["scan"]["twin_shape"], pure=False)
+                                     twin_shape=self.twin_shape, pure=False)
             self.triages[fut] = p
             self.pending.add(fut)
 
@@ -364,7 +365,7 @@ class _Work:
         # neither adds a chance to accuse
         info["planned"] = planned_recipients([view[a] for a in checked], ref["materials"])
         info["checks"], info["errors"] = [], []
-        stage = cascade(info, checked, *config_mod.cascade_gates(self.cfg)[:3])
+        stage = cascade(info, checked, *self.gates)
         info["stopped"] = sum(stage[a] is None for a in checked)      # not registered at all
         info["queue"] = [(view[a], [str(ref["paths"][a])] if a in ref["paths"] else [], stage[a] == "deep")
                          for a in checked if stage[a] is not None]
