@@ -112,7 +112,7 @@ def scale(pool, n_assets):
     n_rows = n_assets * ROWS
     t0 = time.perf_counter()
     gen = np.random.default_rng([38, n_assets])
-    cells = int(np.sqrt(n_rows))
+    cells = features.ivf_cells(n_rows)
     picked = gen.choice(n_assets, min(n_assets, -(-cells * features.IVF_SAMPLE // ROWS)), replace=False)
     ivf = features.train_ivf(np.concatenate([_asset(pool, j) for j in picked]), n_rows)
     index = features.FeatureIndex([], None, np.zeros(0, dtype=np.int32), [], ivf=ivf)
@@ -231,11 +231,44 @@ def threshold(pool):
     return out
 
 
+SHAPE_VIEWS = 146     # D2 rows an asset holds: whole, 48 directions x 3 cut shares, its dense view
+
+
+def shape_scale(n_assets):
+    """Seconds per suspect of :meth:`FeatureIndex.shape_distances` over ``n_assets`` assets' shape views.
+
+    The rows are seeded random histograms (the time does not depend on their values); the suspects are
+    real: a crop of the birdbath and the bunny among clutter of three times its points (every view of
+    :func:`features.suspect_views`).
+    """
+    from pipeline import surface
+    from pipeline.io.pointcloud import read_points
+
+    gen = np.random.default_rng([38, n_assets, 2])
+    shapes = gen.random((n_assets * SHAPE_VIEWS, 32))
+    shapes /= shapes.sum(axis=1, keepdims=True)
+    index = features.FeatureIndex([f"a{j}" for j in range(n_assets)], np.zeros((0, 33), dtype=np.float32),
+                                  np.zeros(0, dtype=np.int32), ["h"] * n_assets, shapes=shapes,
+                                  shape_owner=np.repeat(np.arange(n_assets, dtype=np.int32), SHAPE_VIEWS))
+    bunny = read_points(DATA / "bunny_zipper_faceref_34834.ply").points
+    birdbath = read_points(DATA / "nikolov_birdbath_18793.ply").points
+    suspects = [surface.apply_chain(birdbath, [("crop", 0.5), ("random_similarity", None)], rng=1),
+                surface.apply_chain(bunny, [("random_similarity", None), ("clutter", 3.0)], rng=1)]
+    index.shape_distances(suspects[0])          # the cumulative histograms, computed once per index
+    out = []
+    for points in suspects:
+        t0 = time.perf_counter()
+        index.shape_distances(points)
+        seconds = time.perf_counter() - t0
+        out.append((len(features.suspect_views(points)), seconds))
+    return out
+
+
 def main(sizes):
     pool = _pool()
     lines = ["# Catalogue index at scale (bench/index_scale.py)", "",
-             f"One thread, {time.strftime('%Y-%m-%d')}; faiss IVF (fp16 residual codes, 32 folded dims, about "
-             f"sqrt(N) cells, {features.IVF_PROBE} probed unless said); {ROWS:,} descriptors an asset; synthetic "
+             f"One thread, {time.strftime('%Y-%m-%d')}; faiss IVF (fp16 residual codes, 32 folded dims, "
+             f"features.ivf_cells(N) cells found through an HNSW graph, {features.IVF_PROBE} probed unless said); {ROWS:,} descriptors an asset; synthetic "
              f"assets from {len(pool)} real FPFH sets.", ""]
     n_rows, n_queries, rows = codecs()
     lines += [f"## Codecs on the real scans ({n_rows:,} rows, {n_queries:,} queries of a kitten crop)", "",
@@ -248,6 +281,12 @@ def main(sizes):
     print("\n".join(lines[-4:]), flush=True)
     for r in threshold(pool):
         lines.append(f"| {r['rows']:,} | {r['exact_s']:.1f} | {r['ivf_s']:.2f} |")
+        print(lines[-1], flush=True)
+    lines += ["", f"## Shape distances over {SHAPE_VIEWS} views an asset, seconds per suspect (views of the suspect)", "",
+              "| assets | shape rows | birdbath crop | bunny among clutter |", "|---:|---:|---:|---:|"]
+    for n in sizes:
+        (v1, s1), (v2, s2) = shape_scale(n)
+        lines.append(f"| {n:,} | {n * SHAPE_VIEWS:,} | {s1:.2f} ({v1}) | {s2:.2f} ({v2}) |")
         print(lines[-1], flush=True)
     lines += ["", "## IVF at scale (search, recall@1 and same asset@1 at 16 / 32 cells probed)", "",
               "| assets | rows | cells | train s | build s | index bytes | bytes a row | search s per suspect "

@@ -30,7 +30,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .kernels import registration
-from .kernels.descriptor import D2_BINS, cut_descriptors, d2_descriptor, descriptor_distance
+from .kernels.descriptor import D2_BINS, cumulative_distance, cut_descriptors, d2_descriptor, descriptor_distance
 from .kernels.resampling import estimate_normals, nearest_spacing
 
 __all__ = [
@@ -576,12 +576,16 @@ INDEX_VOXEL = 4.0          # keypoint voxel, in median spacings of the cloud des
 INDEX_KEYPOINTS = 3000     # most keypoints kept per asset (and per suspect description)
 QUERY_SCALES = (1.0, 2**-0.5, 0.5, 2**0.5)   # suspect voxel factors (fewer points than issued: smaller)
 
-# Large catalogues: faiss IVF (:func:`train_ivf`).  bench/index_scale.py, one loaded core, seconds per
-# suspect (12,000 descriptors): exact 12 at 30,000 rows, 31 at 99,000, 65 at 198,000; the IVF 0.4, 0.7,
-# 1.6.  Below IVF_MIN rows (about 33 assets of 3,000 descriptors) exact search still costs less than a
-# registration, and stays exact.
-IVF_MIN = 100_000     # index rows from which the search goes through a faiss IVF
-IVF_PROBE = 16        # cells searched per query (of about sqrt(N))
+# Catalogues of more than a few assets: faiss IVF (:func:`train_ivf`).  bench/index_scale.py, one loaded
+# core, seconds per suspect (12,000 descriptors): exact 12 to 35 at 30,000 rows, 11 to 31 at 99,000; the
+# IVF 0.2 to 0.4, 0.5 to 0.7.  On the leak benchmark (31 assets, 57,656 rows; bench/triage_ivf.py) the IVF
+# left every leak's asset at the same stage of the cascade and every innocent's candidates as many, at
+# 0.40 s a suspect's search against 3.07 (median).  Below IVF_MIN rows (a few assets) the search stays
+# exact.
+IVF_MIN = 20_000      # index rows from which the search goes through a faiss IVF
+IVF_PROBE = 16        # cells searched per query (of :func:`ivf_cells`)
+IVF_GRAPH_SEARCH = 64  # candidates the HNSW graph of the cells keeps while finding a query's cells
+IVF_CELL_ROWS = 1024  # most rows a cell holds on average, past sqrt(N) (a million rows): the search stays flat
 IVF_ITERATIONS = 10   # k-means iterations of the coarse quantizer
 IVF_SAMPLE = 64       # training rows per cell (a seeded subsample of larger sets)
 FOLDED = 32           # coordinates an FPFH row is stored with (:func:`fold_fpfh`)
@@ -822,14 +826,15 @@ class FeatureIndex:
         """Whether :meth:`extend` to ``n_assets`` assets keeps the search as fast as a fresh index's.
 
         An IVF's cells stay as trained, and a query searches :data:`IVF_PROBE`
-        of them: at more than four times the rows it was trained for (fewer
-        cells than half of sqrt(N)) each cell holds too many rows, and the
-        index is built afresh instead.  An exact index can always grow.
+        of them: at more than four times the rows it was trained for
+        (:func:`ivf_cells`) each cell holds too many rows, and the index is
+        built afresh instead.  An exact index can always grow.
         """
         if self.ivf is None:
             return True
         rows = self.n_rows * n_assets / max(len(self.keys), 1)
-        return 2 * self.ivf.nlist >= np.sqrt(rows)
+        nlist = self.ivf.nlist
+        return rows <= 4 * min(nlist * nlist, nlist * IVF_CELL_ROWS)
 
     def extend(self, clouds):
         """Add assets to the index in place, as :func:`build_index` would have indexed them.
@@ -864,12 +869,23 @@ class FeatureIndex:
         (n_assets,) float, inf for an asset with no shape views
         """
         out = np.full(len(self.keys), np.inf)
-        if self.shapes is None:
+        if self.shapes is None or len(self.shapes) == 0:
             return out
+        cumulative, starts = self._cumulative_shapes()
         for view in suspect_views(points):
-            d = np.atleast_1d(descriptor_distance(d2_descriptor(view - view.mean(axis=0)), self.shapes))
-            np.minimum.at(out, self.shape_owner, d)
+            d = cumulative_distance(d2_descriptor(view - view.mean(axis=0)), cumulative)
+            np.minimum.at(out, self.shape_owner[starts], np.minimum.reduceat(d, starts))
         return out
+
+    def _cumulative_shapes(self):
+        """``shapes``' cumulative histograms and where each run of one owner's rows starts, kept while
+        ``shapes`` is the same array (:meth:`add` replaces it)."""
+        kept = getattr(self, "_cumulative", None)
+        if kept is None or kept[0] is not self.shapes:
+            starts = np.flatnonzero(np.r_[True, self.shape_owner[1:] != self.shape_owner[:-1]])
+            kept = (self.shapes, np.cumsum(self.shapes, axis=-1), starts)
+            self._cumulative = kept
+        return kept[1], kept[2]
 
     def twins(self, lenders, within):
         """Assets of the same shape as each lender, sampled otherwise: whole views within ``within``.
@@ -1117,6 +1133,18 @@ def fold_queries(queries):
     return np.ascontiguousarray(queries[:, :FOLDED] + queries[:, FOLDED:] * _UNFOLD)
 
 
+def ivf_cells(n_rows):
+    """Cells of a faiss IVF for ``n_rows`` descriptors: sqrt(N), and past a million rows N / :data:`IVF_CELL_ROWS`.
+
+    A query reads :data:`IVF_PROBE` cells; at sqrt(N) cells that is
+    16 sqrt(N) rows (1.1 s a suspect at 3 million rows, 3.5 s at 30
+    million), at a fixed size a cell it stays 16,384 rows however large the
+    catalogue (``bench/index_scale.py``).
+    """
+    n_rows = max(int(n_rows), 1)
+    return int(max(np.sqrt(n_rows), n_rows / IVF_CELL_ROWS))
+
+
 def train_ivf(sample, n_rows, *, rng=0):
     """An empty faiss IVF for about ``n_rows`` descriptors, its coarse cells trained on ``sample``.
 
@@ -1128,10 +1156,12 @@ def train_ivf(sample, n_rows, *, rng=0):
     of a suspect's descriptors have a runner-up within 2e-4 of their
     nearest row's cosine, and on the real scans SQ8 found the exact nearest
     row for 82 % of a kitten crop's descriptors, PQ (11 x 8 bits) for 15 %,
-    fp16 for 99.5 % (``bench/index_scale.py``).  About sqrt(N) cells, each query
-    searched in its :data:`IVF_PROBE` nearest.  Spherical k-means seeded by
-    ``rng`` on one thread: the same sample gives the same index bytes in
-    any process.
+    fp16 for 99.5 % (``bench/index_scale.py``).  :func:`ivf_cells` cells,
+    each query searched in its :data:`IVF_PROBE` nearest, found through an
+    HNSW graph of the cells' centroids (32 links a node; at 30,000 cells
+    a flat scan of them would cost as much as the rows).  Spherical k-means
+    and the graph built on one thread, seeded by ``rng``: the same sample
+    gives the same index bytes in any process.
 
     Parameters
     ----------
@@ -1144,12 +1174,13 @@ def train_ivf(sample, n_rows, *, rng=0):
     faiss.IndexIVFScalarQuantizer, trained, empty
     """
     faiss = _faiss()
-    cells = int(max(1, min(np.sqrt(max(n_rows, 1)), len(sample))))
-    ivf = faiss.index_factory(FOLDED, f"IVF{cells},SQfp16", faiss.METRIC_INNER_PRODUCT)
+    cells = max(1, min(ivf_cells(n_rows), len(sample)))
+    ivf = faiss.index_factory(FOLDED, f"IVF{cells}_HNSW32,SQfp16", faiss.METRIC_INNER_PRODUCT)
     ivf.cp.seed, ivf.cp.niter, ivf.cp.spherical = rng, IVF_ITERATIONS, True
     ivf.cp.max_points_per_centroid = IVF_SAMPLE
     with _one_thread(faiss):
         ivf.train(fold_fpfh(np.asarray(sample, dtype=np.float32)))
+    faiss.downcast_index(ivf.quantizer).hnsw.efSearch = IVF_GRAPH_SEARCH
     return ivf
 
 

@@ -1,5 +1,7 @@
 """FPFH features (open3d): part-to-whole registration with scale, the catalogue index, the geometry hash."""
 
+from types import SimpleNamespace
+
 import faiss
 import numpy as np
 import pytest
@@ -98,7 +100,7 @@ def test_the_ivf_finds_the_exact_nearest_descriptor_almost_always(models, index,
     true = np.einsum("ij,ikj->ik", feats, index.features[approx])   # the similarities of the rows found
     assert np.abs(sim - true).max() < 1e-4                          # fp16 residuals: near exact
     assert np.all(np.diff(sim, axis=1) <= 0)          # most similar first
-    assert ivf_index.ivf.nlist == int(np.sqrt(len(index.features)))
+    assert ivf_index.ivf.nlist == features.ivf_cells(len(index.features)) == int(np.sqrt(len(index.features)))
     assert [k for k, _ in ivf_index.rank(suspect, top_k=3)] == [k for k, _ in index.rank(suspect, top_k=3)]
 
 
@@ -146,6 +148,17 @@ def test_an_exact_resave_ranks_first_by_its_hash(models, index):
     cow = models["spot_cow_2930"]
     ranked = index.rank(cow[::-1].astype(np.float32), top_k=3)
     assert ranked[0] == ("spot_cow_2930", float("inf"))
+
+
+def test_past_a_million_rows_a_cell_holds_a_fixed_number_of_rows_and_cells_serve_four_times_their_rows():
+    # sqrt(N) cells up to a million rows; beyond, IVF_CELL_ROWS rows a cell: a query reads as many rows at any size
+    assert [features.ivf_cells(n) for n in (100_000, 2**20, 3_000_000, 30_000_000)] == [316, 1024, 2929, 29296]
+    for n_rows in (300_000, 3_000_000, 30_000_000):
+        cells = features.ivf_cells(n_rows)
+        assert n_rows / cells <= max(np.sqrt(n_rows), features.IVF_CELL_ROWS)
+        index = features.FeatureIndex(["a"], None, np.zeros(n_rows, dtype=np.int32), ["h"],
+                                      ivf=SimpleNamespace(nlist=cells))
+        assert index.can_grow_to(3) and not index.can_grow_to(5)
 
 
 def test_an_index_extended_with_more_assets_votes_as_one_built_from_all_of_them(models):

@@ -63,7 +63,28 @@ def descriptor_distance(a, b):
     -------
     float or (k,) float
     """
-    return np.abs(np.cumsum(np.atleast_2d(b), axis=-1) - np.cumsum(a)).sum(axis=-1).squeeze()
+    return cumulative_distance(a, np.cumsum(np.atleast_2d(b), axis=-1)).squeeze()
+
+
+def cumulative_distance(a, cumulative, *, chunk=65536):
+    """:func:`descriptor_distance` of ``a`` to rows given by their cumulative histograms (computed once).
+
+    Parameters
+    ----------
+    a : (bins,) float
+    cumulative : (k, bins) float, ``np.cumsum(b, axis=-1)`` of the rows ``b``
+    chunk : int
+        Rows at a time (keeps the temporaries in cache for a large catalogue's hundreds of thousands).
+
+    Returns
+    -------
+    (k,) float
+    """
+    ca = np.cumsum(a)
+    out = np.empty(len(cumulative))
+    for lo in range(0, len(cumulative), chunk):
+        out[lo:lo + chunk] = np.abs(cumulative[lo:lo + chunk] - ca).sum(axis=-1)
+    return out
 
 
 def sphere_directions(n):

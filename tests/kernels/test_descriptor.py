@@ -3,8 +3,8 @@
 import numpy as np
 
 from pipeline.kernels import attacks
-from pipeline.kernels.descriptor import (CUT_DIRECTIONS, CUT_FRACTIONS, D2_BINS, cut_descriptors,
-                                         d2_descriptor, descriptor_distance, sphere_directions)
+from pipeline.kernels.descriptor import (CUT_DIRECTIONS, CUT_FRACTIONS, D2_BINS, cumulative_distance,
+                                         cut_descriptors, d2_descriptor, descriptor_distance, sphere_directions)
 from tests.conftest import sphere_patch
 
 
@@ -37,3 +37,15 @@ def test_a_crop_is_nearer_its_cut_views_than_the_whole():
     whole = descriptor_distance(d, d2_descriptor(pts - pts.mean(axis=0)))
     nearest_cut = descriptor_distance(d, cuts).min()
     assert nearest_cut < 0.5 * whole, (nearest_cut, whole)
+
+
+def test_distances_to_cumulative_rows_computed_once_equal_the_distances_to_the_rows():
+    gen = np.random.default_rng(7)
+    rows = gen.random((200_000, 32))
+    rows /= rows.sum(axis=1, keepdims=True)
+    a = rows[123] + gen.normal(0.0, 1e-3, 32)
+    cumulative = np.cumsum(rows, axis=-1)
+    d = cumulative_distance(a, cumulative, chunk=4096)      # chunks, one of them partial, give the same rows
+    assert d.shape == (len(rows),)
+    assert np.array_equal(d, cumulative_distance(a, cumulative)) and np.array_equal(d, descriptor_distance(a, rows))
+    assert int(np.argmin(d)) == 123 and d[123] < 0.1 < np.median(d)

@@ -1,0 +1,91 @@
+"""The leak benchmark's triage with the catalogue index searched exactly and through a faiss IVF.
+
+``python bench/triage_ivf.py`` (after ``python bench/rescan_compare.py issue``): for every suspect of
+``bench/results/leaks``, the candidates (:func:`candidates.candidates`, the default ``top_k`` and
+``shape_margin``) and the cascade's stage of each (:func:`candidates.cascade`, the default gates), with
+the index exact and with the same index through a faiss IVF (:meth:`FeatureIndex.with_ivf`, its
+background votes recomputed).  Prints, per search: leaks whose asset is a candidate, that asset's
+stage, the innocents' candidates by stage, and seconds of the descriptor search per suspect.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_v, "1")
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+WORK = ROOT / "bench" / "results" / "leaks"
+
+
+def _info(index, points, twin_shape):
+    t0 = time.perf_counter()
+    voted = index.rank(points, top_k=len(index.keys))
+    seconds = time.perf_counter() - t0
+    shaped = dict(zip(index.keys, index.shape_distances(points)))
+    order = sorted(index.keys, key=lambda k: shaped[k])
+    twins = index.twins([k for k, _ in voted[:10]], twin_shape)
+    return {"ranking": order, "distances": [float(shaped[k]) for k in order],
+            "index_ranking": [k for k, _ in voted], "index_votes": [v for _, v in voted], "twins": twins}, seconds
+
+
+def main():
+    import pyarrow.parquet as pq
+
+    from pipeline import features
+    from pipeline.config import cascade_gates, load_config
+    from pipeline.io.pointcloud import read_points
+    from pipeline.orchestrate.candidates import candidates, cascade
+
+    cfg = load_config(None)
+    gates = cascade_gates(cfg)
+    top_k, margin = cfg["scan"]["top_k"], cfg["scan"]["shape_margin"]
+    rows = pq.read_table(WORK / "catalog.parquet").to_pylist()
+    base = WORK
+    clouds = {r["asset_key"]: read_points(Path(r["path"]) if Path(r["path"]).is_absolute() else base / r["path"]).points
+              for r in rows}
+    exact = features.build_index(clouds, ivf=False)
+    ivf = exact.with_ivf()
+    ivf.prior = features.background_votes(ivf)
+    print(f"{len(clouds)} assets, {exact.n_rows} rows, {ivf.ivf.nlist} cells", flush=True)
+    truth = json.loads((WORK / "truth.json").read_text())
+    out = {}
+    for n, name in enumerate(sorted(truth)):
+        kind, asset = truth[name][0], truth[name][1]
+        points = read_points(WORK / "suspects" / f"{name}.ply").points
+        for label, index in (("exact", exact), ("ivf", ivf)):
+            info, seconds = _info(index, points, gates[3])
+            picked = candidates(info, set(index.keys), top_k, margin)
+            stage = cascade(info, picked, *gates[:3])
+            out.setdefault(label, {})[name] = {
+                "kind": kind, "asset": asset, "picked": picked, "stage": stage, "seconds": seconds,
+                "shape_rank": info["ranking"].index(asset) if asset in info["ranking"] else None,
+                "vote_rank": info["index_ranking"].index(asset) if asset in info["index_ranking"] else None}
+        if n % 20 == 0:
+            print(n, name, flush=True)
+    (WORK / "triage_ivf.json").write_text(json.dumps(out))
+    for label, res in out.items():
+        leaks = [r for r in res.values() if r["kind"] == "leak"]
+        innocent = [r for r in res.values() if r["kind"] != "leak"]
+        own = Counter(r["stage"].get(r["asset"], "not a candidate") if r["asset"] in r["picked"] else "not a candidate"
+                      for r in leaks)
+        stages = Counter(s for r in innocent for s in r["stage"].values())
+        secs = sorted(r["seconds"] for r in res.values())
+        print(f"{label}: leaks {len(leaks)}, own asset's stage {dict(own)}; innocents {len(innocent)}, candidates "
+              f"by stage {({str(k): v / len(innocent) for k, v in stages.items()})}; search s median "
+              f"{secs[len(secs) // 2]:.2f}, max {secs[-1]:.2f}")
+    differ = [n for n in out["exact"] if out["exact"][n]["stage"] != out["ivf"][n]["stage"]]
+    print("suspects whose candidates or stages differ:", len(differ))
+    for n in differ:
+        print(" ", n, truth[n], out["exact"][n]["stage"], out["ivf"][n]["stage"])
+
+
+if __name__ == "__main__":
+    main()
