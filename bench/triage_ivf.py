@@ -6,6 +6,9 @@
 the index exact and with the same index through a faiss IVF (:meth:`FeatureIndex.with_ivf`, its
 background votes recomputed).  Prints, per search: leaks whose asset is a candidate, that asset's
 stage, the innocents' candidates by stage, and seconds of the descriptor search per suspect.
+``TRIAGE_SEARCH=ivf`` takes the IVF search alone.  Each suspect's triage is kept in
+``triage_ivf.json``; ``python bench/triage_ivf.py topk`` applies every ``top_k`` from 1 to 6 to the IVF's
+triage and prints, per ``top_k``, where each leak's asset lands and the innocents' candidates by stage.
 """
 
 from __future__ import annotations
@@ -57,20 +60,21 @@ def main():
     print(f"{len(clouds)} assets, {exact.n_rows} rows, {ivf.ivf.nlist} cells", flush=True)
     truth = json.loads((WORK / "truth.json").read_text())
     out = {}
+    searches = [s for s in (("exact", exact), ("ivf", ivf)) if os.environ.get("TRIAGE_SEARCH", s[0]) == s[0]]
     for n, name in enumerate(sorted(truth)):
         kind, asset = truth[name][0], truth[name][1]
         points = read_points(WORK / "suspects" / f"{name}.ply").points
-        for label, index in (("exact", exact), ("ivf", ivf)):
+        for label, index in searches:
             info, seconds = _info(index, points, gates[3])
             picked = candidates(info, set(index.keys), top_k, margin)
             stage = cascade(info, picked, *gates[:3])
             out.setdefault(label, {})[name] = {
-                "kind": kind, "asset": asset, "picked": picked, "stage": stage, "seconds": seconds,
+                "kind": kind, "asset": asset, "picked": picked, "stage": stage, "seconds": seconds, "info": info,
                 "shape_rank": info["ranking"].index(asset) if asset in info["ranking"] else None,
                 "vote_rank": info["index_ranking"].index(asset) if asset in info["index_ranking"] else None}
         if n % 20 == 0:
             print(n, name, flush=True)
-    (WORK / "triage_ivf.json").write_text(json.dumps(out))
+    (WORK / "triage_ivf.json").write_text(json.dumps(out, default=float))
     for label, res in out.items():
         leaks = [r for r in res.values() if r["kind"] == "leak"]
         innocent = [r for r in res.values() if r["kind"] != "leak"]
@@ -81,11 +85,40 @@ def main():
         print(f"{label}: leaks {len(leaks)}, own asset's stage {dict(own)}; innocents {len(innocent)}, candidates "
               f"by stage {({str(k): v / len(innocent) for k, v in stages.items()})}; search s median "
               f"{secs[len(secs) // 2]:.2f}, max {secs[-1]:.2f}")
+    if len(out) < 2:
+        return
     differ = [n for n in out["exact"] if out["exact"][n]["stage"] != out["ivf"][n]["stage"]]
     print("suspects whose candidates or stages differ:", len(differ))
     for n in differ:
         print(" ", n, truth[n], out["exact"][n]["stage"], out["ivf"][n]["stage"])
 
 
+def topk():
+    """Where each leak's asset lands, and what the innocents cost, at every ``top_k`` (the IVF's triage)."""
+    from pipeline.config import cascade_gates, load_config
+    from pipeline.orchestrate.candidates import candidates, cascade
+
+    cfg = load_config(None)
+    gates, margin = cascade_gates(cfg), cfg["scan"]["shape_margin"]
+    res = json.loads((WORK / "triage_ivf.json").read_text())["ivf"]
+    keys = set(a for r in res.values() for a in r["info"]["ranking"])
+    print("| top_k | leaks: own asset deep / quick / not a candidate | innocents: candidates, of them deep |")
+    print("|---:|---|---|")
+    for k in range(1, 7):
+        own, cands, deep, lost = Counter(), [], [], []
+        for name, r in sorted(res.items()):
+            picked = candidates(r["info"], keys, k, margin)
+            stage = cascade(r["info"], picked, *gates[:3])
+            if r["kind"] == "leak":
+                own[stage.get(r["asset"]) if r["asset"] in picked else "not a candidate"] += 1
+                if r["asset"] not in picked:
+                    lost.append(name)
+            else:
+                cands.append(len(picked))
+                deep.append(sum(s == "deep" for s in stage.values()))
+        print(f"| {k} | {own['deep']} / {own['quick']} / {own['not a candidate']} "
+              f"| {sum(cands) / len(cands):.2f}, {sum(deep) / len(deep):.2f} |  {' '.join(lost)}")
+
+
 if __name__ == "__main__":
-    main()
+    topk() if sys.argv[1:2] == ["topk"] else main()

@@ -284,22 +284,25 @@ def _solve_cluster(original, normals, deformed, points, targets, reliable, membe
     if kept is not None:
         weight = weight * kept[:, None, None]
     size = len(members)
-    rhs_points = np.zeros((size, 3))
-    np.add.at(rhs_points, j, np.einsum("kab,kb->ka", weight, residual))
+    # the cluster points matched: the others add nothing to either side of the equations
+    rows, at = np.unique(j, return_inverse=True)
+    matched = basis[rows]
+    rhs_points = np.zeros((len(rows), 3))
+    np.add.at(rhs_points, at, np.einsum("kab,kb->ka", weight, residual))
     k = basis.shape[1]
     if gram is not None and not reliable.any():
         counts = np.bincount(j, weights=kept, minlength=size)
         normal_matrix = _normal_matrix_from_gram(gram, counts, normals[members], basis) / var_n
     else:
-        m = np.zeros((size, 3, 3))
-        np.add.at(m, j, weight)
+        m = np.zeros((len(rows), 3, 3))
+        np.add.at(m, at, weight)
         normal_matrix = np.empty((3 * k, 3 * k))
         for a in range(3):
             for b in range(a, 3):
-                block = basis.T @ (m[:, a, b][:, None] * basis)
+                block = matched.T @ (m[:, a, b][:, None] * matched)
                 normal_matrix[a * k:(a + 1) * k, b * k:(b + 1) * k] = block
                 normal_matrix[b * k:(b + 1) * k, a * k:(a + 1) * k] = block
-    rhs = (basis.T @ rhs_points).T.reshape(-1)          # [axis x | axis y | axis z]
+    rhs = (matched.T @ rhs_points).T.reshape(-1)        # [axis x | axis y | axis z]
     lam = ridge * float(np.trace(normal_matrix)) / (3 * k)
     normal_matrix[np.diag_indices_from(normal_matrix)] += lam
     solution = sl.solve(normal_matrix, rhs, assume_a="pos")

@@ -146,6 +146,14 @@ def test_trimming_keeps_the_mark_beside_an_unmarked_original():
         fit_spectral_displacement(original, normals, suspect, members, [basis], **FIT, trim=0.5)
 
 
+def _random_cluster(rng, n, start, k):
+    """Random points and unit normals, a cluster of 400 of them from ``start``, an orthonormal (400, k) basis."""
+    original = rng.normal(size=(n, 3))
+    normals = rng.normal(size=(n, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    return original, normals, np.arange(start, start + 400), np.linalg.qr(rng.normal(size=(400, k)))[0]
+
+
 @pytest.mark.parametrize("few", [False, True])
 @pytest.mark.parametrize("trim", [None, 3.0])
 def test_the_normal_model_gram_shortcut_equals_the_full_normal_equations(trim, few):
@@ -153,11 +161,7 @@ def test_the_normal_model_gram_shortcut_equals_the_full_normal_equations(trim, f
     from pipeline.kernels import resampling
 
     rng = np.random.default_rng(5)
-    original = rng.normal(size=(600, 3))
-    normals = rng.normal(size=(600, 3))
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    members = np.arange(100, 500)
-    basis = np.linalg.qr(rng.normal(size=(400, 24)))[0]
+    original, normals, members, basis = _random_cluster(rng, 600, 100, 24)
     targets = np.concatenate([members[:300], np.repeat(members[300:320], 3)])     # 80 never matched
     if few:                              # a piece lying on a tenth of the cluster: the sum taken directly
         targets = np.concatenate([members[:30], np.repeat(members[30:40], 2)])
@@ -175,3 +179,34 @@ def test_the_normal_model_gram_shortcut_equals_the_full_normal_equations(trim, f
         kept = resampling._solve_cluster(original, normals, original, points, targets, none, members, basis,
                                          1.0)
         assert not np.allclose(kept, full, rtol=1e-3)
+
+
+@pytest.mark.parametrize("share", [0.1, 1.0])
+def test_the_cluster_solve_equals_dense_weighted_least_squares(share):
+    """The xyz model's equations, summed over the matched cluster points only, solve the full weighted problem."""
+    from pipeline.kernels import resampling
+
+    rng = np.random.default_rng(7)
+    original, normals, members, basis = _random_cluster(rng, 500, 50, 16)
+    n_matched = int(share * len(members))
+    targets = np.concatenate([members[:n_matched], members[: n_matched // 4]])      # some matched twice
+    points = original[targets] + 0.01 * rng.normal(size=(len(targets), 3))
+    reliable = rng.random(len(targets)) < 0.5
+    got = resampling._solve_cluster(original, normals, original, points, targets, reliable, members, basis, 0.1)
+    # the same weights, and every cluster point's rows of the design matrix, built densely
+    n, r = normals[targets], points - original[targets]
+    normal_part = np.einsum("ki,ki->k", r, n)
+    var_n = np.median(normal_part ** 2)
+    tangential = r - normal_part[:, None] * n
+    var_t = max(np.median((tangential[reliable] ** 2).sum(axis=1)) / 2.0, var_n)
+    k = basis.shape[1]
+    lhs, rhs = np.zeros((3 * k, 3 * k)), np.zeros(3 * k)
+    local = {m: i for i, m in enumerate(members)}
+    for t, point_r, normal, rel in zip(targets, r, n, reliable):
+        w = np.outer(normal, normal) / var_n + rel * (np.eye(3) - np.outer(normal, normal)) / var_t
+        g = np.kron(np.eye(3), basis[local[t]][None, :])                      # (3, 3K): X -> displacement
+        lhs += g.T @ w @ g
+        rhs += g.T @ w @ point_r
+    lhs[np.diag_indices_from(lhs)] += 0.1 * np.trace(lhs) / (3 * k)
+    want = np.linalg.solve(lhs, rhs).reshape(3, k).T
+    assert np.allclose(got, want, rtol=1e-9, atol=1e-12) and np.abs(want).max() > 1e-3
