@@ -39,6 +39,24 @@ def _info(index, points, twin_shape):
             "index_ranking": [k for k, _ in voted], "index_votes": [v for _, v in voted], "twins": twins}, seconds
 
 
+def _tally(res):
+    """Each leak's own asset by stage, the innocents' mean candidates by stage, and the leaks whose asset was not picked.
+
+    ``res``: suspect name -> {"kind", "asset", "picked", "stage"}.
+    """
+    own, stages, lost = Counter(), Counter(), []
+    innocents = [r for r in res.values() if r["kind"] != "leak"]
+    for name, r in sorted(res.items()):
+        if r["kind"] != "leak":
+            stages.update(str(s) for s in r["stage"].values())
+        elif r["asset"] in r["picked"]:
+            own[r["stage"].get(r["asset"], "not a candidate")] += 1
+        else:
+            own["not a candidate"] += 1
+            lost.append(name)
+    return own, {s: n / len(innocents) for s, n in stages.items()}, lost
+
+
 def main():
     import pyarrow.parquet as pq
 
@@ -76,15 +94,10 @@ def main():
             print(n, name, flush=True)
     (WORK / "triage_ivf.json").write_text(json.dumps(out, default=float))
     for label, res in out.items():
-        leaks = [r for r in res.values() if r["kind"] == "leak"]
-        innocent = [r for r in res.values() if r["kind"] != "leak"]
-        own = Counter(r["stage"].get(r["asset"], "not a candidate") if r["asset"] in r["picked"] else "not a candidate"
-                      for r in leaks)
-        stages = Counter(s for r in innocent for s in r["stage"].values())
+        own, stages, _ = _tally(res)
         secs = sorted(r["seconds"] for r in res.values())
-        print(f"{label}: leaks {len(leaks)}, own asset's stage {dict(own)}; innocents {len(innocent)}, candidates "
-              f"by stage {({str(k): v / len(innocent) for k, v in stages.items()})}; search s median "
-              f"{secs[len(secs) // 2]:.2f}, max {secs[-1]:.2f}")
+        print(f"{label}: leaks {sum(own.values())}, own asset's stage {dict(own)}; innocents, candidates by stage "
+              f"{stages}; search s median {secs[len(secs) // 2]:.2f}, max {secs[-1]:.2f}")
     if len(out) < 2:
         return
     differ = [n for n in out["exact"] if out["exact"][n]["stage"] != out["ivf"][n]["stage"]]
@@ -105,19 +118,11 @@ def topk():
     print("| top_k | leaks: own asset deep / quick / not a candidate | innocents: candidates, of them deep |")
     print("|---:|---|---|")
     for k in range(1, 7):
-        own, cands, deep, lost = Counter(), [], [], []
-        for name, r in sorted(res.items()):
-            picked = candidates(r["info"], keys, k, margin)
-            stage = cascade(r["info"], picked, *gates[:3])
-            if r["kind"] == "leak":
-                own[stage.get(r["asset"]) if r["asset"] in picked else "not a candidate"] += 1
-                if r["asset"] not in picked:
-                    lost.append(name)
-            else:
-                cands.append(len(picked))
-                deep.append(sum(s == "deep" for s in stage.values()))
+        picked = {name: candidates(r["info"], keys, k, margin) for name, r in res.items()}
+        own, stages, lost = _tally({name: dict(r, picked=picked[name], stage=cascade(r["info"], picked[name], *gates[:3]))
+                                    for name, r in res.items()})
         print(f"| {k} | {own['deep']} / {own['quick']} / {own['not a candidate']} "
-              f"| {sum(cands) / len(cands):.2f}, {sum(deep) / len(deep):.2f} |  {' '.join(lost)}")
+              f"| {sum(stages.values()):.2f}, {stages.get('deep', 0.0):.2f} |  {' '.join(lost)}")
 
 
 if __name__ == "__main__":
