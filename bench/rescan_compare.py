@@ -8,6 +8,8 @@ in turn up to ``N_NEGATIVES``, copied into ``leaks/compare/suspects``.
 folder of ``leaks/compare``) with the tree it runs from into ``leaks/compare/NAME``
 (``RESCAN_SCAN_SETS=key=value,...`` sets ``scan`` keys, e.g. the cascade's gates).  ``python bench/rescan_compare.py diff A B``
 prints every suspect whose verdict, asset or recipient differs, and the counts.
+``python bench/rescan_compare.py tally A [B]`` gives worker seconds per stage (median and 95th
+percentile) for leaks and for negatives, and with B the same beside it and how many scores are equal.
 """
 
 from __future__ import annotations
@@ -83,5 +85,40 @@ def diff(a, b):
     print("leaks named right in", b, right[True], "of", sum(truth[n][0] == "leak" for n in rb))
 
 
+STAGES = ("candidates", "quick_registration", "deep_registration", "detection")
+
+
+def _seconds(row):
+    """Worker seconds of one suspect by stage, and in all (candidates + registration + detection)."""
+    out = {s: float(row.get(f"seconds_{s}") or 0.0) for s in STAGES}
+    out["total"] = sum(float(row.get(f"seconds_{s}") or 0.0) for s in ("candidates", "registration", "detection"))
+    return out
+
+
+def tally(*names):
+    import numpy as np
+    import leaks
+
+    truth = json.loads((WORK / "truth.json").read_text())
+    scans = [leaks._results(WORK / "compare" / x) for x in names]
+    for group in ("leak", "negative"):
+        rows = [n for n in sorted(scans[0]) if (truth[n][0] == "leak") == (group == "leak")]
+        print(f"{group}s ({len(rows)}), worker s median / 95th percentile:")
+        for stage in (*STAGES, "total"):
+            cells = []
+            for scan_ in scans:
+                x = np.array([_seconds(scan_[n])[stage] for n in rows if n in scan_])
+                cells.append(f"{np.median(x):7.1f} / {np.percentile(x, 95):7.1f}" if len(x) else "-")
+            print(f"  {stage:20s}", "   ".join(cells))
+    if len(scans) == 2:
+        a, b = scans
+        both = [n for n in a if n in b]
+        same = [np.array_equal([a[n]["score"]], [b[n]["score"]], equal_nan=True) for n in both]
+        equal = sum(same)
+        worst = max((abs(a[n]["score"] - b[n]["score"]) for n in both if a[n]["score"] == a[n]["score"]), default=0.0)
+        print(f"{equal} of {len(both)} scores equal in every digit (largest difference {worst:.3g}); "
+              f"recipients counted equal in {sum(a[n]['n_checked'] == b[n]['n_checked'] for n in both)}")
+
+
 if __name__ == "__main__":
-    {"issue": issue, "scan": scan, "diff": diff}[sys.argv[1]](*sys.argv[2:])
+    {"issue": issue, "scan": scan, "diff": diff, "tally": tally}[sys.argv[1]](*sys.argv[2:])

@@ -32,6 +32,7 @@ from scipy.spatial import cKDTree
 from .kernels import registration
 from .kernels.descriptor import D2_BINS, cumulative_distance, cut_descriptors, d2_descriptor, descriptor_distance
 from .kernels.resampling import estimate_normals, nearest_spacing
+from .nearest import NearestTree
 
 __all__ = [
     "fpfh", "voxel_for", "match", "register_global", "GlobalResult",
@@ -186,7 +187,7 @@ class _Original:
     def __init__(self, points, spacing, target):
         self.points = points
         self.spacing = spacing
-        self.tree = cKDTree(points)
+        self.tree = NearestTree(points)
         self.voxel = voxel_for(points, spacing, target)
         self.keypoints, self.features = fpfh(points, self.voxel)
         self.diag = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))

@@ -13,12 +13,12 @@ import time
 from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .config import WatermarkParams, check_code
 from .kernels import (clustering, coding, digest, fingerprint, graph, keys, modulation, registration, resampling,
                       revolution, spectral)
 from .kernels import distortion as surface_measures
+from .nearest import NearestTree
 
 __all__ = [
     "Frame", "ClusterSpec", "frame_of", "plan_clusters",
@@ -696,7 +696,7 @@ def estimate_differences(suspect, reference, specs, bases, detect_params, params
     spacing = resampling.nearest_spacing(reference) if spacing is None else spacing
     if normals is None and detect_params.correspondence != "paper":
         normals = resampling.estimate_normals(reference)      # once, for the registration and the fit
-    tree = cKDTree(reference)
+    tree = NearestTree(reference)
     times = {} if times is None else times
     others = []
     try:
@@ -803,7 +803,7 @@ def register(suspect, reference, spacing, detect_params, tree, normals=None, *, 
     spacing : float
         Median nearest-neighbour distance of the reference.
     detect_params : DetectParams
-    tree : cKDTree of ``reference``
+    tree : NearestTree (or cKDTree) of ``reference``
     normals : (m, 3) float, optional
     deep : bool
         False: raise :class:`Undecided` where the deep steps would run.
@@ -835,7 +835,7 @@ def register(suspect, reference, spacing, detect_params, tree, normals=None, *, 
                                          iterations=detect_params.ransac_iterations).transform
         times["deep"] = time.perf_counter() - t0
         return found
-    robust = registration.register_robust(suspect, reference, spacing=spacing)
+    robust = registration.register_robust(suspect, reference, spacing=spacing, tree=tree)
     # a whole copy overlaps the original from both sides; a part of it, the
     # asset among clutter or junk, or a fit collapsed to a tiny scale (every
     # point "near" the original) does not, and there the principal frames
@@ -980,7 +980,7 @@ def _revolution_pose(suspect, reference, spacing, tree, normals, most=1500):
         return None
     axis = revolution.revolution_axis(reference, normals)
     starts = revolution.revolution_poses(suspect, resampling.estimate_normals(suspect), reference, axis, tree, spacing,
-                                         scale)[:REVOLUTION_STARTS]
+                                         scale, nearest=NearestTree)[:REVOLUTION_STARTS]
     if not starts:
         return None
     sub = suspect[:: max(1, len(suspect) // most)]
@@ -1017,7 +1017,7 @@ def _register_parts(suspect, reference, spacing, tree):
     gaps = [(float(np.abs(_signature(suspect[part]) - target).max()), part) for part in parts]
     alike = sorted((g for g in gaps if g[0] < PART_SHAPE), key=lambda g: g[0])   # stable: ties keep size order
     for _, part in alike[:MAX_PARTS]:
-        found = registration.register_robust(suspect[part], reference, spacing=spacing)
+        found = registration.register_robust(suspect[part], reference, spacing=spacing, tree=tree)
         if _whole_on_part(found, suspect, reference, spacing, tree):
             return found
     return None

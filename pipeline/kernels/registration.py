@@ -198,7 +198,7 @@ def _compose(outer, inner):
     )
 
 
-def register_robust(suspect, original, *, spacing, coarse_points=1500, rng=0):
+def register_robust(suspect, original, *, spacing, coarse_points=1500, rng=0, tree=None):
     """Registration that survives removal, resampling, noise and cropping.
 
     Hypotheses: identity, and the 24 axis-aligned rotations between principal
@@ -216,13 +216,15 @@ def register_robust(suspect, original, *, spacing, coarse_points=1500, rng=0):
         Subsample size for scoring the hypotheses.
     rng : int or numpy.random.Generator
         Seeds the subsample.
+    tree : cKDTree over ``original``, or any tree with its ``query``
+        Built here when None.
 
     Returns
     -------
     Similarity
     """
     rng = np.random.default_rng(rng)
-    tree = cKDTree(original)
+    tree = cKDTree(original) if tree is None else tree
     sub = suspect
     if len(suspect) > coarse_points:
         sub = suspect[np.sort(rng.choice(len(suspect), coarse_points, replace=False))]

@@ -187,7 +187,7 @@ def profile(points, anchor, direction):
     return np.stack([z, r], axis=1)
 
 
-def match_profile(part, whole, scale_hint, spacing, *, top=4, most=400):
+def match_profile(part, whole, scale_hint, spacing, *, top=4, most=400, whole_tree=None):
     """Scale, height offset and flip that lay a part's profile on the original's, best first.
 
     ``(flip * s * z + t, s * r)`` of the part against the original's
@@ -206,12 +206,14 @@ def match_profile(part, whole, scale_hint, spacing, *, top=4, most=400):
         The original's median point spacing.
     top : int
         Distinct matches returned.
+    whole_tree : cKDTree over ``whole``, or any tree with its ``query``
+        Built here when None.
 
     Returns
     -------
     list of (cost, scale, offset, flip)
     """
-    tree = cKDTree(whole)
+    tree = cKDTree(whole) if whole_tree is None else whole_tree
     sample = part[:: max(1, len(part) // most)]
     zlo, zhi = whole[:, 0].min(), whole[:, 0].max()
     scales = scale_hint * np.exp(np.linspace(-np.log(SCALE_RANGE), np.log(SCALE_RANGE), 35))
@@ -295,7 +297,7 @@ def _frame(direction):
 
 
 def revolution_poses(part, part_normals, original, original_axis, tree, spacing, scale_hint, *,
-                     axes=2, matches=4, turns=4, most=1500):
+                     axes=2, matches=4, turns=4, most=1500, nearest=cKDTree):
     """Coarse poses of a part of a near solid of revolution: its axis and profile, then the turn about it.
 
     Parameters
@@ -318,6 +320,9 @@ def revolution_poses(part, part_normals, original, original_axis, tree, spacing,
         Best turns kept per profile match (local minima of the distance).
     most : int
         Points of the part used.
+    nearest : class
+        Builds the tree over the original's profile: cKDTree, or any class
+        with its exact ``query`` (the same poses either way).
 
     Returns
     -------
@@ -330,7 +335,7 @@ def revolution_poses(part, part_normals, original, original_axis, tree, spacing,
     anchor_o, dir_o, _ = original_axis
     frame_o = _frame(dir_o)
     whole = profile(original, anchor_o, dir_o)
-    whole_tree = cKDTree(whole)
+    whole_tree = nearest(whole)
     out = []
     for anchor_s, dir_s, cost_s in revolution_axes(sub, part_normals[:: max(1, len(part) // most)], count=axes):
         if np.isfinite(cost_s):
@@ -351,7 +356,8 @@ def _turns(sub, anchor_s, dir_s, anchor_o, dir_o, frame_o, whole, whole_tree, tr
     axis = (anchor_s, dir_s)
     for _ in range(rounds):
         best = (np.inf, None)
-        for _, s, t, f in match_profile(profile(sub, *axis), whole, scale_hint, spacing)[:matches]:
+        for _, s, t, f in match_profile(profile(sub, *axis), whole, scale_hint, spacing,
+                                            whole_tree=whole_tree)[:matches]:
             anchor, direction, s, t = _refine_axis(sub, *axis, s, t, f, whole_tree, spacing)
             found = _turn_scan(probe, anchor, direction, s, t, f, anchor_o, dir_o, frame_o, tree, turns)
             out.extend(found)
