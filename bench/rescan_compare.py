@@ -113,8 +113,7 @@ def tally(*names):
     if len(scans) == 2:
         a, b = scans
         both = [n for n in a if n in b]
-        same = [np.array_equal([a[n]["score"]], [b[n]["score"]], equal_nan=True) for n in both]
-        equal = sum(same)
+        equal = sum(np.array_equal([a[n]["score"]], [b[n]["score"]], equal_nan=True) for n in both)
         worst = max((abs(a[n]["score"] - b[n]["score"]) for n in both if a[n]["score"] == a[n]["score"]), default=0.0)
         print(f"{equal} of {len(both)} scores equal in every digit (largest difference {worst:.3g}); "
               f"recipients counted equal in {sum(a[n]['n_checked'] == b[n]['n_checked'] for n in both)}")

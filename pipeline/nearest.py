@@ -29,7 +29,6 @@ class NearestTree:
 
     def __init__(self, points):
         self.data = np.ascontiguousarray(points, dtype=np.float64)
-        self.n = len(self.data)
         self._tree = KDTree(self.data)
 
     def query(self, x, k=1, distance_upper_bound=np.inf):

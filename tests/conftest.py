@@ -6,7 +6,15 @@ import os
 import shutil
 from pathlib import Path
 
-import numpy as np
+# One BLAS/OpenMP thread per test process, as every entry point has (pipeline/threads.py), before
+# NumPy, OpenBLAS or pykdtree's OpenMP loads.  Two test processes share two cores; a thread per core
+# each oversubscribes them.  A variable already set wins; subprocess tests set their own.
+from pipeline.threads import PINNED
+
+for _name, _value in PINNED.items():
+    os.environ.setdefault(_name, _value)
+
+import numpy as np  # noqa: E402
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]

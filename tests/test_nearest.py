@@ -32,7 +32,7 @@ def test_the_nearest_point_and_its_distance_are_cKDTrees(cloud, bound):
 
 def test_k_nearest_points_and_odd_inputs(cloud):
     points, queries = cloud
-    tree = NearestTree(points[:, :3].astype(np.float32))            # stored as float64 all the same
+    tree = NearestTree(points.astype(np.float32))                   # stored as float64 all the same
     dist, idx = tree.query(queries.T.copy().T, k=4)                 # a non-contiguous query
     want_dist, want_idx = cKDTree(points.astype(np.float32).astype(np.float64)).query(queries, k=4)
     assert dist.shape == idx.shape == (len(queries), 4)
