@@ -128,10 +128,11 @@ WATERMARK = _section("Embedding parameters (paper, section 2.2).", {
                       "so planning time and memory are linear in the points; normals come from each "
                       "cluster's own points.  Needs cover: true and no seeds.  null: the whole asset at once.",
                       minimum=1000, maximum=1_000_000_000),
-    "code": _p(["repetition", "convolutional"], "convolutional",
-               "Channel code of the payload: repetition (the paper: each bit on c chips) or "
-               "convolutional (rate 1/2, K = 7, the same m x c chips over the coded word, soft "
-               "max-log-MAP decoding; needs chip_rate >= 3 for 32 bits)."),
+    "code": _p(["repetition", "convolutional", "tailbiting"], "convolutional",
+               "Channel code of the payload: repetition (the paper: each bit on c chips), "
+               "convolutional (rate 1/2, K = 7, terminated) or tailbiting (rate 1/3, K = 9, "
+               "tail-biting): the same m x c chips over the coded word, soft max-log-MAP "
+               "decoding; either code needs chip_rate >= 3 for 32 bits."),
     "band_noise": _p(("number", "null"), 0.01,
                      "Size the spectral band of each asset for this noise (fraction of phi, as the "
                      "noise attack of ROBUSTNESS.md): the chip rate drops below chip_rate, down to what "
@@ -700,7 +701,7 @@ class WatermarkParams:
     displacement: str = _W["displacement"]      # "xyz" (paper) or "normal": the same RMSE, along the normals
     amplitude: str = _NOT_SURVEY["amplitude"]   # phi of the whole model (paper) or of each cluster
     max_displacement: float | None = _NOT_SURVEY["max_displacement"]   # cap on any point's motion
-    code: str = _W["code"]                      # "repetition" (paper) or "convolutional"
+    code: str = _W["code"]                      # "repetition" (paper), "convolutional" or "tailbiting"
     tile_points: int | None = _W["tile_points"]  # large assets: clusters planned cell by cell
     band_noise: float | None = _W["band_noise"]  # size each asset's band for this noise (None: chip_rate)
     band_gain: float = _W["band_gain"]          # what the band's last coefficient keeps at band_noise

@@ -1,13 +1,24 @@
-"""Channel codes for the payload: the paper's repetition and a convolutional code.
+"""Channel codes for the payload: the paper's repetition and two convolutional codes.
 
 The paper repeats every bit ``chip_rate`` times (eq. 2): a repetition code,
 which at equal energy per payload bit gains nothing over sending each bit
-once.  The convolutional code here spreads the same number of chips over a
-coded word instead: rate 1/2, constraint length 7, generators 171 and 133
-(octal, the NASA/CCSDS code, free distance 10), terminated with K - 1 zero
-tail bits.  Decoding is soft: max-log-MAP (the BCJR recursion in the log
-domain) over the per-coded-bit z-scores, whose hard decisions are those of
-the soft Viterbi decoder and whose margins are per-bit reliabilities.
+once.  The convolutional codes here spread the same number of chips over a
+coded word instead:
+
+- ``convolutional``: rate 1/2, constraint length 7, generators 171 and 133
+  (octal, the NASA/CCSDS code, free distance 10), terminated with K - 1 zero
+  tail bits: 76 symbols for 32 bits.
+- ``tailbiting``: rate 1/3, constraint length 9, generators 557, 663 and 711
+  (the IS-95 code, free distance 18), tail-biting (the encoder starts in the
+  state its last K - 1 bits leave it in, so no tail is sent): 96 symbols for
+  32 bits, the chips of chip rate 3.  Its R * d_free is 6 against 4.2 for
+  the terminated code: about 1.5 dB more at high signal-to-noise ratio.
+
+Decoding is soft: max-log-MAP (the BCJR recursion in the log domain) over
+the per-coded-bit z-scores, whose hard decisions are those of the soft
+Viterbi decoder and whose margins are per-bit reliabilities.  The
+tail-biting word is decoded exactly: one recursion per starting state, the
+paths kept whose last state is their first.
 """
 
 from __future__ import annotations
@@ -17,9 +28,11 @@ import numpy as np
 __all__ = ["CODES", "CONSTRAINT", "GENERATORS", "coded_length", "least_chip_rate", "encode", "decode_soft",
            "chip_groups"]
 
-CODES = ("repetition", "convolutional")
+CODES = ("repetition", "convolutional", "tailbiting")
 GENERATORS = (0o171, 0o133)
 CONSTRAINT = 7
+TAILBITING_GENERATORS = (0o557, 0o663, 0o711)
+TAILBITING_CONSTRAINT = 9
 
 
 def coded_length(n_bits, code):
@@ -28,6 +41,8 @@ def coded_length(n_bits, code):
         return int(n_bits)
     if code == "convolutional":
         return len(GENERATORS) * (int(n_bits) + CONSTRAINT - 1)
+    if code == "tailbiting":
+        return len(TAILBITING_GENERATORS) * int(n_bits)
     raise ValueError(f"unknown code {code!r}; use one of {', '.join(CODES)}")
 
 
@@ -36,23 +51,25 @@ def least_chip_rate(n_bits, code):
     return -(-coded_length(n_bits, code) // int(n_bits))
 
 
-def _trellis():
+def _trellis(generators=GENERATORS, constraint=CONSTRAINT):
     """next_state (S, 2) int and outputs (S, 2, n_out) in {-1, +1} of the shift register."""
-    states = 1 << (CONSTRAINT - 1)
+    states = 1 << (constraint - 1)
     s = np.arange(states)[:, None]
     u = np.arange(2)[None, :]
-    register = (u << (CONSTRAINT - 1)) | s           # current input in the top bit
-    outputs = np.stack([_parity(register & g) for g in GENERATORS], axis=-1)
+    register = (u << (constraint - 1)) | s           # current input in the top bit
+    outputs = np.stack([_parity(register & g, constraint) for g in generators], axis=-1)
     return register >> 1, 2.0 * outputs - 1.0
 
 
-def _parity(x):
+def _parity(x, constraint=CONSTRAINT):
     x = np.asarray(x, dtype=np.int64)
-    bits = (x[..., None] >> np.arange(CONSTRAINT)) & 1
+    bits = (x[..., None] >> np.arange(constraint)) & 1
     return bits.sum(axis=-1) & 1
 
 
 _NEXT, _OUT = _trellis()
+_TB_NEXT, _TB_OUT = _trellis(TAILBITING_GENERATORS, TAILBITING_CONSTRAINT)
+_TB_INTO = np.argsort(_TB_NEXT.ravel(), kind="stable").reshape(-1, 2)   # the two (state, input) into each state
 
 
 def encode(bits, code):
@@ -71,10 +88,18 @@ def encode(bits, code):
     if code == "repetition":
         return bits.astype(np.uint8)
     coded_length(len(bits), code)   # validates the name
-    state, out = 0, []
-    for u in np.concatenate([bits, np.zeros(CONSTRAINT - 1, dtype=np.int64)]):
-        out.append((_OUT[state, u] > 0).astype(np.uint8))
-        state = int(_NEXT[state, u])
+    if code == "tailbiting":
+        state = 0
+        for u in bits[-(TAILBITING_CONSTRAINT - 1):]:     # the state the last bits leave
+            state = int(_TB_NEXT[state, u])
+        nxt, table, feed = _TB_NEXT, _TB_OUT, bits
+    else:
+        state, nxt, table = 0, _NEXT, _OUT
+        feed = np.concatenate([bits, np.zeros(CONSTRAINT - 1, dtype=np.int64)])
+    out = []
+    for u in feed:
+        out.append((table[state, u] > 0).astype(np.uint8))
+        state = int(nxt[state, u])
     return np.concatenate(out)
 
 
@@ -101,6 +126,8 @@ def decode_soft(z, n_bits, code):
         raise ValueError(f"{len(z)} scores for a {code} word of {n_bits} bits")
     if code == "repetition":
         return (z > 0).astype(np.uint8), z.copy()
+    if code == "tailbiting":
+        return _decode_tailbiting(z, n_bits)
     steps = n_bits + CONSTRAINT - 1
     gamma = np.einsum("tk,suk->tsu", z.reshape(steps, len(GENERATORS)), _OUT)   # (T, S, 2) branch metrics
     gamma[n_bits:, :, 1] = -np.inf                                               # the tail is all zeros
@@ -116,6 +143,30 @@ def decode_soft(z, n_bits, code):
         beta[t] = (gamma[t] + beta[t + 1][_NEXT]).max(axis=1)
     path = alpha[:n_bits, :, None] + gamma[:n_bits] + beta[1:n_bits + 1][:, _NEXT]   # (m, S, 2)
     best = path.max(axis=1)                                                          # (m, 2)
+    margin = 0.5 * (best[:, 1] - best[:, 0])
+    return (margin > 0).astype(np.uint8), margin
+
+
+def _decode_tailbiting(z, n_bits):
+    """Exact max-log-MAP of the tail-biting word: alpha and beta per starting state, (S0, S) each step."""
+    states = _TB_NEXT.shape[0]
+    gamma = np.einsum("tk,suk->tsu", z.reshape(n_bits, len(TAILBITING_GENERATORS)), _TB_OUT)   # (T, S, 2)
+    start = np.where(np.eye(states, dtype=bool), 0.0, -np.inf)                                 # (S0, S)
+    came, fed = np.divmod(_TB_INTO, 2)                        # (S, 2): the states and inputs into each state
+    alpha = np.empty((n_bits + 1, states, states))
+    alpha[0] = start
+    for t in range(n_bits):
+        alpha[t + 1] = np.maximum(alpha[t][:, came[:, 0]] + gamma[t][came[:, 0], fed[:, 0]],
+                                  alpha[t][:, came[:, 1]] + gamma[t][came[:, 1], fed[:, 1]])
+    beta = np.empty_like(alpha)
+    beta[n_bits] = start                                      # the last state is the first
+    for t in range(n_bits - 1, -1, -1):
+        beta[t] = np.maximum(gamma[t][:, 0] + beta[t + 1][:, _TB_NEXT[:, 0]],
+                             gamma[t][:, 1] + beta[t + 1][:, _TB_NEXT[:, 1]])
+    best = np.empty((n_bits, 2))
+    for t in range(n_bits):
+        for u in range(2):
+            best[t, u] = (gamma[t][:, u] + (alpha[t] + beta[t + 1][:, _TB_NEXT[:, u]]).max(axis=0)).max()
     margin = 0.5 * (best[:, 1] - best[:, 0])
     return (margin > 0).astype(np.uint8), margin
 
