@@ -8,7 +8,7 @@ configuration, e.g. ``watermark.chip_rate=3;watermark.beta=0.0021`` (the lowest
 the overrides and the copy's MRMS.
 For every non-LiDAR scan of ``../shared/data/models`` with at least 10,000
 points, the default configuration (normal displacement, beta 0.00115,
-convolutional code, clusters covering the asset at the paper's distance)
+tail-biting code, clusters covering the asset at the paper's distance)
 embeds the evaluation's message once; each seed (``SEEDS``) adds uniform noise of
 ``NOISE`` phi per coordinate (``ROBUSTNESS.md``) and reads the message twice:
 

@@ -128,7 +128,7 @@ WATERMARK = _section("Embedding parameters (paper, section 2.2).", {
                       "so planning time and memory are linear in the points; normals come from each "
                       "cluster's own points.  Needs cover: true and no seeds.  null: the whole asset at once.",
                       minimum=1000, maximum=1_000_000_000),
-    "code": _p(["repetition", "convolutional", "tailbiting"], "convolutional",
+    "code": _p(["repetition", "convolutional", "tailbiting"], "tailbiting",
                "Channel code of the payload: repetition (the paper: each bit on c chips), "
                "convolutional (rate 1/2, K = 7, terminated) or tailbiting (rate 1/3, K = 9, "
                "tail-biting): the same m x c chips over the coded word, soft max-log-MAP "

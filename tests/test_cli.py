@@ -182,7 +182,7 @@ def test_embedding_with_no_config_is_embedding_with_the_documented_default(tmp_p
         written[name] = (out.read_bytes(), json.loads(capsys.readouterr().out)["params"])
     assert written["none"] == written["default"]
     params = written["none"][1]
-    assert params["code"] == "convolutional" and params["band_noise"] is None
+    assert params["code"] == "tailbiting" and params["band_noise"] is None
     # 21,000 points: noise of 1 % spans over 2 spacings, so the band narrows at the same distance
     rate = params["chip_rate"]
     assert 3 <= rate < 10 and params["beta"] == pytest.approx(0.00115 * np.sqrt(10 / rate))

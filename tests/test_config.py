@@ -10,7 +10,7 @@ def test_defaults_are_the_papers_at_the_papers_distance():
     p = config.watermark_params(config.load_config())
     assert (p.n_bits, p.chip_rate, p.valence, p.n_clusters, p.cluster_size) == (32, 10, 12, 5, 4000)
     # along the normals at 0.002 / sqrt(3): the paper's distance to the surface (docs/evaluation.md)
-    assert (p.beta, p.displacement, p.code, p.chip_layout) == (0.00115, "normal", "convolutional", "interleaved")
+    assert (p.beta, p.displacement, p.code, p.chip_layout) == (0.00115, "normal", "tailbiting", "interleaved")
 
 
 def test_no_config_is_the_documented_default_config():

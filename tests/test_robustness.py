@@ -4,7 +4,7 @@ Each case runs one trial of the evaluation (``pipeline.orchestrate.evaluate.tria
 code behind the report's rows): embed with the default config (the paper's
 c 10 and 32 bits, interleaved chips, displacement along the normals at beta
 0.002 / sqrt(3), so at the paper's distance to the surface, and the
-convolutional payload code), attack, shuffle, detect with the robust method.
+tail-biting payload code), attack, shuffle, detect with the robust method.
 Clusters cover every model (the default): 9 of 4,000 points on the bunny, 6 of
 2,400 on the 12,000-point scans, at the root mean square of the paper's 5.
 """
@@ -56,7 +56,7 @@ def test_the_default_is_the_rate_distortion_winner():
     params = config.watermark_params(DEFAULT)
     assert (params.chip_rate, params.n_bits) == (10, 32)
     assert params.beta == pytest.approx(0.002 / np.sqrt(3), rel=0.01)
-    assert (params.displacement, params.code) == ("normal", "convolutional")
+    assert (params.displacement, params.code) == ("normal", "tailbiting")
 
 
 @pytest.mark.parametrize("attack", EXACT)

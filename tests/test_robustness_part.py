@@ -2,7 +2,7 @@
 
 Embeds with the default config's parameters (32 bits, c 10, interleaved
 chips, displacement along the normals at the paper's distance to the
-surface, the convolutional payload code), attacks, shuffles and
+surface, the tail-biting payload code), attacks, shuffles and
 detects through ``estimate_differences`` / ``decode``, the engine's own
 path; registration is the default ``robust``: unless the principal frames
 overlap the original from both sides, a separate object of the suspect that

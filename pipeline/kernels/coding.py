@@ -11,8 +11,9 @@ coded word instead:
 - ``tailbiting``: rate 1/3, constraint length 9, generators 557, 663 and 711
   (the IS-95 code, free distance 18), tail-biting (the encoder starts in the
   state its last K - 1 bits leave it in, so no tail is sent): 96 symbols for
-  32 bits, the chips of chip rate 3.  Its R * d_free is 6 against 4.2 for
-  the terminated code: about 1.5 dB more at high signal-to-noise ratio.
+  32 bits, the chips of chip rate 3.  Its R * d_free at the effective rate
+  (32 / 96) is 6, against 4.2 for the terminated code (32 / 76): about
+  1.5 dB more at high signal-to-noise ratio.
 
 Decoding is soft: max-log-MAP (the BCJR recursion in the log domain) over
 the per-coded-bit z-scores, whose hard decisions are those of the soft
@@ -25,7 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["CODES", "CONSTRAINT", "GENERATORS", "coded_length", "least_chip_rate", "encode", "decode_soft",
+__all__ = ["CODES", "CONSTRAINT", "GENERATORS", "TAILBITING_CONSTRAINT", "TAILBITING_GENERATORS", "coded_length", "least_chip_rate", "encode", "decode_soft",
            "chip_groups"]
 
 CODES = ("repetition", "convolutional", "tailbiting")
@@ -78,7 +79,7 @@ def encode(bits, code):
     Parameters
     ----------
     bits : (m,) {0, 1}
-    code : {"repetition", "convolutional"}
+    code : {"repetition", "convolutional", "tailbiting"}
 
     Returns
     -------
@@ -89,9 +90,10 @@ def encode(bits, code):
         return bits.astype(np.uint8)
     coded_length(len(bits), code)   # validates the name
     if code == "tailbiting":
+        memory = TAILBITING_CONSTRAINT - 1
         state = 0
-        for u in bits[-(TAILBITING_CONSTRAINT - 1):]:     # the state the last bits leave
-            state = int(_TB_NEXT[state, u])
+        for u in np.tile(bits, -(-memory // max(len(bits), 1)))[-memory:]:   # the state the last bits leave
+            state = int(_TB_NEXT[state, u])                # (a word shorter than the memory, repeated)
         nxt, table, feed = _TB_NEXT, _TB_OUT, bits
     else:
         state, nxt, table = 0, _NEXT, _OUT
@@ -111,14 +113,14 @@ def decode_soft(z, n_bits, code):
     z : (coded_length(n_bits, code),) float
         Score of each coded symbol, positive for a 1 (the correlator's z).
     n_bits : int
-    code : {"repetition", "convolutional"}
+    code : {"repetition", "convolutional", "tailbiting"}
 
     Returns
     -------
     bits : (n_bits,) uint8
     margin : (n_bits,) float
         Per-bit reliability in z units: z itself for the repetition code;
-        for the convolutional code half the difference of the best path
+        for either convolutional code half the difference of the best path
         metrics with the bit at 1 and at 0 (max-log-MAP), positive for a 1.
     """
     z = np.asarray(z, dtype=np.float64)

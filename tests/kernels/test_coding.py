@@ -142,3 +142,15 @@ def test_the_tailbiting_code_beats_the_terminated_code_on_the_same_chips():
             decoded, _ = coding.decode_soft(z, 32, code)
             errors[code] += int((decoded != bits).any())
     assert errors["convolutional"] >= 10 and 2 * errors["tailbiting"] < errors["convolutional"], errors
+
+
+@pytest.mark.parametrize("n_bits", range(1, 10))
+def test_short_tailbiting_words_round_trip(n_bits):
+    # fewer bits than the register's memory: the start state is the one the repeated word leaves
+    words = np.array(list(itertools.product([0, 1], repeat=n_bits)), dtype=np.uint8)
+    coded = np.stack([coding.encode(w, "tailbiting") for w in words])
+    assert len({c.tobytes() for c in coded}) == len(words)                    # every word its own
+    for i in np.random.default_rng(n_bits).permutation(len(words))[:24]:
+        w, c = words[i], coded[i]
+        bits, _ = coding.decode_soft(2.0 * c - 1, n_bits, "tailbiting")
+        assert bits.tolist() == w.tolist()

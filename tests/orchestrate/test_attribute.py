@@ -76,5 +76,5 @@ def test_a_row_written_before_a_parameter_existed_keeps_the_value_it_was_issued_
            "crc_bits": 0, "displacement": "xyz"}               # a 0.2.0 row: no amplitude, cap, tiles or code
     params = params_from_row({"params_json": json.dumps(old)})
     assert (params.code, params.amplitude, params.max_displacement, params.tile_points) == (
-        "repetition", "model", None, None)                   # not today's defaults (convolutional needs c >= 3)
+        "repetition", "model", None, None)                   # not today's defaults (the coded defaults need c >= 3)
     assert (params.beta, params.displacement, params.chip_rate) == (0.002, "xyz", 2)
