@@ -23,7 +23,7 @@ from .nearest import NearestTree
 __all__ = [
     "Frame", "ClusterSpec", "frame_of", "plan_clusters",
     "cluster_basis", "cluster_normals", "modulate_cluster", "embed", "embed_with_bases", "detect",
-    "detect_with_bases", "estimate_differences", "register", "Undecided", "decode", "distortion", "WatermarkError",
+    "detect_with_bases", "estimate_differences", "register", "Undecided", "decode", "decode_poses", "distortion", "WatermarkError",
     "Reference", "compute_reference", "embed_reference", "detect_reference", "fingerprint_length",
     "fingerprint_displacement", "cluster_amplitude", "budget_share",
     "capped", "mark_reach", "cluster_fingerprint", "check_count", "check_digest",
@@ -661,8 +661,8 @@ def detect_with_bases(suspect, reference, specs, bases, material, params, detect
 
     ``suspect`` and ``reference`` are in the original's working frame.
     """
-    estimate = estimate_differences(suspect, reference, specs, bases, detect_params, params)
-    return decode(estimate, specs, material, params, detect_params)
+    estimate = estimate_differences(suspect, reference, specs, bases, detect_params, params, every_pose=True)
+    return decode_poses(estimate, specs, material, params, detect_params)
 
 
 REGISTERED = (0.05, 0.1)   # least fitness (share of the suspect on the original) and coverage of a registration
@@ -680,7 +680,7 @@ def estimate_differences(suspect, reference, specs, bases, detect_params, params
     with ``deep=False`` a suspect that only the deep registration steps could
     place raises :class:`Undecided` (``times`` then holds the quick steps' seconds).
     ``every_pose``: also find and read the other poses that fit about as well
-    (a fingerprint reader counts each; a message decoder reads one pose).
+    (a fingerprint reader and :func:`decode_poses` read and count each).
 
     Returns
     -------
@@ -772,6 +772,35 @@ def decode(estimate, specs, material, params, detect_params):
         "registration": estimate["registration"],
         "clusters": [{"index": s.index, "support": int(n)} for s, n in zip(specs, estimate["support"])],
     }
+
+
+def decode_poses(estimate, specs, material, params, detect_params):
+    """:func:`decode` at every pose an estimate read; the least p-value, times the number of poses.
+
+    A part or a sparse copy of a near-symmetric original fits it about as
+    well at several poses (:func:`register`), and the mark reads only at the
+    true one.  The pose whose presence p-value is least gives the bits; that
+    p-value times the number of poses (Bonferroni) keeps the bound on a false
+    detection.  Ties go to the registration's own pose.
+
+    Parameters
+    ----------
+    estimate : dict
+        :func:`estimate_differences` (``other_poses`` empty unless ``every_pose``).
+
+    Returns
+    -------
+    dict
+        :func:`decode`'s, at the pose read, with ``poses``: how many were read.
+    """
+    reads = [decode({**estimate, **pose}, specs, material, params, detect_params)
+             for pose in [estimate, *estimate.get("other_poses", ())]]
+    best = min(range(len(reads)), key=lambda i: (reads[i]["p_value"], i))
+    out = reads[best]
+    out["p_value"] = min(1.0, out["p_value"] * len(reads))
+    out["detected"] = bool(out["p_value"] < detect_params.p_threshold)
+    out["poses"] = len(reads)
+    return out
 
 
 def _diag(points):

@@ -23,7 +23,7 @@ from .. import config as config_mod
 from ..io.pointcloud import atomic_write_bytes, read_points, units_of
 from ..kernels import fingerprint, keys, modulation
 from ..surface import apply_chain, parse_attack
-from ..watermark import (band_applies, band_for, decode, distortion, embed_with_bases, estimate_differences,
+from ..watermark import (band_applies, band_for, decode_poses, distortion, embed_with_bases, estimate_differences,
                          fingerprint_displacement, fingerprint_length, fingerprint_observations)
 from .reference import build_reference, load_reference
 
@@ -107,8 +107,8 @@ def trial(model_path, cache_path, params, detect_params, chain_text, method, see
     attacked = apply_chain(marked, chain + [("shuffle", None)], rng=seed, faces=cloud.faces())
     t2 = time.perf_counter()
     estimate = estimate_differences(attacked - centre, points - centre, specs, bases, dparams,
-                                    params, **ref.detection_aids())
-    result = decode(estimate, specs, material, params, dparams)
+                                    params, every_pose=True, **ref.detection_aids())
+    result = decode_poses(estimate, specs, material, params, dparams)
     errors = int((np.asarray(result["bits"]) != bits).sum())
     dist = _distortion_of(points, marked, (str(model_path), tuple(cache_path), params, material))
     return {
@@ -261,13 +261,13 @@ def false_positives(model_path, cache_path, params, detect_params, material, n_k
     rows = []
     for label, suspect in suspects.items():
         estimate = estimate_differences(suspect - centre, points - centre, specs, bases, detect_params,
-                                        params, **ref.detection_aids())
+                                        params, every_pose=True, **ref.detection_aids())
         for k in range(n_keys):
             wrong = keys.derive_key_material(b"evaluation-wrong-keys", f"wrong-{k}")
-            res = decode(estimate, specs, wrong, params, detect_params)
+            res = decode_poses(estimate, specs, wrong, params, detect_params)
             rows.append({"model": Path(model_path).stem, "suspect": label, "key": k, "p_value": res["p_value"]})
         if label == "unmarked original":
-            res = decode(estimate, specs, material, params, detect_params)
+            res = decode_poses(estimate, specs, material, params, detect_params)
             rows.append({"model": Path(model_path).stem, "suspect": "unmarked original, right key",
                          "key": -1, "p_value": res["p_value"]})
     return rows
