@@ -26,8 +26,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["CODES", "CONSTRAINT", "GENERATORS", "TAILBITING_CONSTRAINT", "TAILBITING_GENERATORS", "coded_length", "least_chip_rate", "encode", "decode_soft",
-           "chip_groups"]
+__all__ = ["CODES", "CONSTRAINT", "GENERATORS", "TAILBITING_CONSTRAINT", "TAILBITING_GENERATORS", "coded_length",
+           "least_chip_rate", "encode", "decode_soft", "chip_groups"]
 
 CODES = ("repetition", "convolutional", "tailbiting")
 GENERATORS = (0o171, 0o133)
@@ -70,7 +70,8 @@ def _parity(x, constraint=CONSTRAINT):
 
 _NEXT, _OUT = _trellis()
 _TB_NEXT, _TB_OUT = _trellis(TAILBITING_GENERATORS, TAILBITING_CONSTRAINT)
-_TB_INTO = np.argsort(_TB_NEXT.ravel(), kind="stable").reshape(-1, 2)   # the two (state, input) into each state
+# the two (state, input) pairs that lead into each state, (S, 2) each
+_TB_CAME, _TB_FED = np.divmod(np.argsort(_TB_NEXT.ravel(), kind="stable").reshape(-1, 2), 2)
 
 
 def encode(bits, code):
@@ -154,12 +155,11 @@ def _decode_tailbiting(z, n_bits):
     states = _TB_NEXT.shape[0]
     gamma = np.einsum("tk,suk->tsu", z.reshape(n_bits, len(TAILBITING_GENERATORS)), _TB_OUT)   # (T, S, 2)
     start = np.where(np.eye(states, dtype=bool), 0.0, -np.inf)                                 # (S0, S)
-    came, fed = np.divmod(_TB_INTO, 2)                        # (S, 2): the states and inputs into each state
     alpha = np.empty((n_bits + 1, states, states))
     alpha[0] = start
     for t in range(n_bits):
-        alpha[t + 1] = np.maximum(alpha[t][:, came[:, 0]] + gamma[t][came[:, 0], fed[:, 0]],
-                                  alpha[t][:, came[:, 1]] + gamma[t][came[:, 1], fed[:, 1]])
+        alpha[t + 1] = np.maximum(alpha[t][:, _TB_CAME[:, 0]] + gamma[t][_TB_CAME[:, 0], _TB_FED[:, 0]],
+                                  alpha[t][:, _TB_CAME[:, 1]] + gamma[t][_TB_CAME[:, 1], _TB_FED[:, 1]])
     beta = np.empty_like(alpha)
     beta[n_bits] = start                                      # the last state is the first
     for t in range(n_bits - 1, -1, -1):

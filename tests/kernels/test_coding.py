@@ -104,12 +104,29 @@ def test_the_tailbiting_word_turns_with_its_bits():
 
 
 def test_the_tailbiting_free_distance_is_18_on_32_bits():
+    # every nonzero 32-bit word, through the trellis: per start state, the least output weight
+    # of a path that returns to it, with and without a 1 fed so far (min-plus recursion)
+    nxt, out = coding._trellis(coding.TAILBITING_GENERATORS, coding.TAILBITING_CONSTRAINT)
+    weight = (out > 0).sum(axis=-1)                                   # (S, 2)
+    states = len(nxt)
+    least = np.full((2, states, states), np.inf)                      # [fed a 1, start, state]
+    least[0][np.arange(states), np.arange(states)] = 0
+    for _ in range(32):
+        step = np.full_like(least, np.inf)
+        for u in (0, 1):
+            moved = least + weight[:, u]                              # (2, S0, S)
+            for flag in (0, 1):
+                target = 1 if u else flag
+                np.minimum.at(step[target], (slice(None), nxt[:, u]), moved[flag])
+        least = step
+    assert least[1][np.arange(states), np.arange(states)].min() == 18
+    ones = np.zeros(32, dtype=int)                                    # and a word that reaches it
     weights = []
     for w in (1, 2, 3):
-        for ones in itertools.combinations(range(32), w):
-            bits = np.zeros(32, dtype=int)
-            bits[list(ones)] = 1
-            weights.append(int(coding.encode(bits, "tailbiting").sum()))
+        for at in itertools.combinations(range(32), w):
+            ones[:] = 0
+            ones[list(at)] = 1
+            weights.append(int(coding.encode(ones, "tailbiting").sum()))
     assert min(weights) == 18
 
 
