@@ -44,7 +44,17 @@ def d2_descriptor(points, *, bins=D2_BINS, pairs=_PAIRS, seed=0):
     rng = np.random.default_rng(seed)
     i = rng.integers(0, len(points), pairs)
     j = rng.integers(0, len(points), pairs)
-    d = np.linalg.norm(points[i] - points[j], axis=1)
+    # the norm summed coordinate by coordinate, in np.linalg.norm's order (x, y, z): the same
+    # bits, at half the time (gathers of contiguous columns instead of rows of three)
+    points = np.asarray(points)
+    if not np.issubdtype(points.dtype, np.inexact):
+        points = points.astype(np.float64)      # as np.linalg.norm takes integers
+    columns = points.T.copy()
+    d = np.zeros(pairs, dtype=points.dtype)
+    for x in columns:
+        step = x[i] - x[j]
+        d += step * step
+    d = np.sqrt(d, out=d)
     d = d[d > 0]
     scale = np.median(d)
     hist, _ = np.histogram(d / scale, bins=bins, range=(0.0, _RANGE))
@@ -118,7 +128,7 @@ def cut_descriptors(points, *, directions=CUT_DIRECTIONS, fractions=CUT_FRACTION
     out = []
     for d in sphere_directions(directions):
         height = points @ d
-        for f in fractions:
-            piece = points[height >= np.quantile(height, 1.0 - f)]
+        for cut in np.quantile(height, [1.0 - f for f in fractions]):
+            piece = points[height >= cut]
             out.append(d2_descriptor(piece - piece.mean(axis=0), pairs=pairs))
     return np.array(out).reshape(-1, D2_BINS)

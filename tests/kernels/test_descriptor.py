@@ -49,3 +49,33 @@ def test_distances_to_cumulative_rows_computed_once_equal_the_distances_to_the_r
     assert d.shape == (len(rows),)
     assert np.array_equal(d, cumulative_distance(a, cumulative)) and np.array_equal(d, descriptor_distance(a, rows))
     assert int(np.argmin(d)) == 123 and d[123] < 0.1 < np.median(d)
+
+
+def _d2_by_rows(points, pairs, seed=0):
+    """D2 as first written: pair distances by ``np.linalg.norm`` of whole rows."""
+    rng = np.random.default_rng(seed)
+    i, j = rng.integers(0, len(points), pairs), rng.integers(0, len(points), pairs)
+    d = np.linalg.norm(points[i] - points[j], axis=1)
+    d = d[d > 0]
+    hist, _ = np.histogram(d / np.median(d), bins=D2_BINS, range=(0.0, 3.0))
+    return hist / max(hist.sum(), 1)
+
+
+def test_d2_by_columns_is_bitwise_the_d2_of_row_norms():
+    gen = np.random.default_rng(11)
+    for k in range(40):
+        n = int(gen.integers(2, 6000))
+        pts = gen.normal(size=(n, 3)) * gen.uniform(1e-3, 1e3) + gen.normal(size=3) * gen.uniform(0.0, 100.0)
+        if k % 4 == 0:
+            pts = np.round(pts, 1)               # coincident points: zero distances dropped
+        for p in (pts, pts.astype(np.float32)):
+            assert np.array_equal(d2_descriptor(p, pairs=20_000), _d2_by_rows(p, 20_000)), (k, p.dtype)
+
+
+def test_cut_views_are_the_d2_of_each_plane_cut():
+    pts = sphere_patch(2000, 6)
+    height = pts @ sphere_directions(CUT_DIRECTIONS)[5]
+    cuts = cut_descriptors(pts, pairs=10_000).reshape(CUT_DIRECTIONS, len(CUT_FRACTIONS), D2_BINS)
+    for f, view in zip(CUT_FRACTIONS, cuts[5]):
+        piece = pts[height >= np.quantile(height, 1.0 - f)]
+        assert np.array_equal(view, _d2_by_rows(piece - piece.mean(axis=0), 10_000))
