@@ -13,8 +13,11 @@ from pipeline.io.pointcloud import read_points
 from pipeline.kernels import attacks, registration
 from pipeline.kernels.descriptor import CUT_DIRECTIONS, CUT_FRACTIONS, d2_descriptor, descriptor_distance
 from pipeline.kernels.resampling import nearest_spacing
+from pipeline.nearest import NearestTree
 
 EFFORT = DetectParams(registration="robust")     # the default registration and its default effort
+# (registrations are given the tree the detector builds, pipeline.nearest; tests/test_nearest.py
+# checks that cKDTree gives the same poses)
 
 INDEX_MODELS = ["bunny_zipper_faceref_34834", "kitten_12623", "nikolov_owl_12442", "fandisk_cad_6475",
                 "fertility_4494", "nikolov_birdbath_18793", "nikolov_blackvase_17337", "spot_cow_2930",
@@ -313,8 +316,6 @@ def test_shape_views_survive_saving_the_index(blob_family, tmp_path):
                                          ("shell", "crop:0.5+random_similarity+noise:0.3%")])
 def test_detection_registers_a_crop_of_a_smooth_shape(kind, chain):
     # FPFH features are all alike on a smooth surface; the rotation search does not need them
-    from scipy.spatial import cKDTree
-
     from pipeline.watermark import register
 
     shape = demo.procedural_shape(kind, 6000, seed=8) * 20
@@ -325,7 +326,7 @@ def test_detection_registers_a_crop_of_a_smooth_shape(kind, chain):
     rot, scale = attacks.random_rotation(rng), 3.0
     placed = attacks.similarity(part, rot, scale, [4.0, -1.0, 2.0])
     suspect = attacks.apply_chain(placed, steps[2:], rng)
-    found = register(suspect, shape, spacing, EFFORT, cKDTree(shape))
+    found = register(suspect, shape, spacing, EFFORT, NearestTree(shape))
     assert _aligned_error(found, placed, part) < 0.1 * spacing      # the pose, not the noise
     assert not features.needs_search(found, suspect, shape, spacing)
     # a pose a few spacings off along the surface fits loosely: searched again
@@ -334,8 +335,6 @@ def test_detection_registers_a_crop_of_a_smooth_shape(kind, chain):
 
 
 def test_the_quick_steps_settle_a_whole_copy_and_leave_a_crop_to_the_deep_ones():
-    from scipy.spatial import cKDTree
-
     from pipeline.watermark import Undecided, register
 
     shape = demo.procedural_shape("blob", 6000, seed=8) * 20
@@ -344,13 +343,13 @@ def test_the_quick_steps_settle_a_whole_copy_and_leave_a_crop_to_the_deep_ones()
     rot = attacks.random_rotation(rng)
     whole = attacks.similarity(shape, rot, 3.0, [4.0, -1.0, 2.0])
     times = {}
-    found = register(whole[rng.permutation(len(whole))], shape, spacing, EFFORT, cKDTree(shape), deep=False,
+    found = register(whole[rng.permutation(len(whole))], shape, spacing, EFFORT, NearestTree(shape), deep=False,
                      times=times)
     assert _aligned_error(found, whole, shape) < 0.1 * spacing
     assert times["deep"] == 0.0 and times["quick"] > 0.0
     part = attacks.crop(shape, 0.3, rng)
     with pytest.raises(Undecided):
-        register(attacks.similarity(part, rot, 3.0, [4.0, -1.0, 2.0]), shape, spacing, EFFORT, cKDTree(shape),
+        register(attacks.similarity(part, rot, 3.0, [4.0, -1.0, 2.0]), shape, spacing, EFFORT, NearestTree(shape),
                  deep=False)
 
 
@@ -455,7 +454,7 @@ def test_a_sparse_whole_birdbath_turned_about_its_axis_is_read_at_the_turns_that
     kept = np.sort(rng.choice(len(shape), int(round(0.139 * len(shape))), replace=False))
     suspect = moved[kept]
     poses, times = [], {}
-    found = register(suspect, shape, spacing, EFFORT, cKDTree(shape), poses=poses, times=times)
+    found = register(suspect, shape, spacing, EFFORT, NearestTree(shape), poses=poses, times=times)
     assert times["deep"] == 0.0 and 0 < len(poses) <= registration.MAX_POSES
     errors = [_aligned_error(p, suspect, shape[kept]) / spacing for p in [found, *poses]]
     assert errors[0] > 1.0 and min(errors) < 0.01
@@ -473,7 +472,7 @@ def test_a_vase_crop_is_laid_where_it_was_cut_or_read_at_a_pose_that_is(models):
     shape = shape - shape.mean(axis=0)
     spacing = float(np.median(nearest_spacing(shape)))
     suspect = apply_chain(shape, parse_chain("crop:0.1+random_similarity") + [("shuffle", None)], rng=1)
-    tree, poses = cKDTree(shape), []
+    tree, poses = NearestTree(shape), []
     found = register(suspect, shape, spacing, EFFORT, tree, poses=poses)
     residual = [float(np.median(tree.query(registration.apply(p, suspect))[0])) / spacing for p in [found, *poses]]
     assert len(poses) <= registration.MAX_POSES

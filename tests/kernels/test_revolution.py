@@ -5,6 +5,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from pipeline.kernels import registration, resampling, revolution
+from pipeline.nearest import NearestTree
 
 
 def _vase(n=20000, seed=0):
@@ -35,10 +36,10 @@ def test_the_axis_of_a_whole_vase_is_found():
 
 def test_a_turned_rescaled_crop_of_a_vase_is_laid_back_where_it_was_cut():
     # 30 % crops: of this open tube a 10 % band or side slice can fit another axis as well (the
-    # real black vase's 10 % crops are tests/test_features.py's)
+    # real black vase's 10 % crops are tests/test_features.py's); the trees the detector gives it
     shape = _vase(8000)
     spacing = float(np.median(resampling.nearest_spacing(shape)))
-    tree = cKDTree(shape)
+    tree = NearestTree(shape)
     axis = revolution.revolution_axis(shape, resampling.estimate_normals(shape))
     for seed in range(2):
         rng = np.random.default_rng(seed)
@@ -49,7 +50,7 @@ def test_a_turned_rescaled_crop_of_a_vase_is_laid_back_where_it_was_cut():
         part = registration.apply(truth, kept)
         hint = 1.0 / truth.scale * float(np.exp(rng.uniform(-0.2, 0.2)))      # the spacing ratio, roughly
         starts = revolution.revolution_poses(part, resampling.estimate_normals(part), shape, axis, tree, spacing, hint,
-                                             axes=1 + seed)     # one candidate axis, then two
+                                             axes=1 + seed, nearest=NearestTree)     # one axis, then two
         assert starts
         fits = [registration.refine_part(part, tree, shape, pose, spacing=spacing, iterations=30)
                 for _, pose in starts[:8]]
