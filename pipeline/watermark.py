@@ -9,6 +9,7 @@ produce the same bytes.
 from __future__ import annotations
 
 
+import hashlib
 import time
 from dataclasses import asdict, dataclass, field, replace
 
@@ -882,7 +883,7 @@ def register(suspect, reference, spacing, detect_params, tree, normals=None, *, 
         found = registration.refine_part(suspect, tree, reference, robust, spacing=spacing,
                                          widths=POLISH_WIDTHS, iterations=POLISH_ITERATIONS)
         if poses is not None:
-            poses.extend(_turned_poses(suspect, reference, found, spacing, tree))
+            poses.extend(_turned_poses(suspect, reference, found, spacing, tree, normals))
         times["quick"] = time.perf_counter() - t0
         return found
     from . import features   # open3d: imported only when needed
@@ -899,7 +900,7 @@ def register(suspect, reference, spacing, detect_params, tree, normals=None, *, 
     if placed is not None and not search:     # the original, whole, on one of the suspect's objects
         found = features.polish(suspect, reference, best, spacing=spacing, normals=normals)
         if poses is not None:
-            _add_turns(poses, suspect, reference, found, spacing, tree)
+            _add_turns(poses, suspect, reference, found, spacing, tree, normals)
         return found
     if not deep:
         raise Undecided("the quick registration steps leave it undecided")
@@ -919,7 +920,7 @@ def register(suspect, reference, spacing, detect_params, tree, normals=None, *, 
             best = tried[features.best_overlap(ranked)]
             if best is turned and not features.needs_search(turned, suspect, reference, spacing):
                 if poses is not None:
-                    _add_turns(poses, suspect, reference, turned, spacing, tree)
+                    _add_turns(poses, suspect, reference, turned, spacing, tree, normals)
                 times["deep"] = time.perf_counter() - t1
                 return turned
         # a part laid loosely on a smooth shape, where features mislead: search every rotation
@@ -934,7 +935,7 @@ def register(suspect, reference, spacing, detect_params, tree, normals=None, *, 
             if best is searched:
                 if poses is not None:
                     poses.extend(others)
-                    _add_turns(poses, suspect, reference, searched, spacing, tree)
+                    _add_turns(poses, suspect, reference, searched, spacing, tree, normals)
                 times["deep"] = time.perf_counter() - t1
                 return searched          # register_search ends with the polish already
             others = [searched, *others]     # the search's poses, beside another step's
@@ -943,7 +944,7 @@ def register(suspect, reference, spacing, detect_params, tree, normals=None, *, 
     if search and poses is not None and searched is not None:
         poses.extend(registration.poses_alike(suspect, tree, _coverage_sample(reference), found, others, spacing))
     if poses is not None:
-        _add_turns(poses, suspect, reference, found, spacing, tree)
+        _add_turns(poses, suspect, reference, found, spacing, tree, normals)
     times["deep"] = time.perf_counter() - t1
     return found
 
@@ -954,15 +955,18 @@ PART_SHAPE = 0.3         # most |log| difference of principal spreads for a part
 MAX_PARTS = 3            # most parts registered whole, the most original-like first
 
 
-def _turned_poses(suspect, reference, found, spacing, tree, most=1500):
+def _turned_poses(suspect, reference, found, spacing, tree, normals=None, most=1500):
     """Poses of the suspect turned about the original's near-symmetry axes that fit as well as ``found``.
 
     The principal frames of a near solid of revolution leave the turn about
     its axis open, and ICP settles wherever it starts: each turn of
     :func:`registration.axis_turns` is refined on at most ``most`` points,
-    those that fit about as well (:func:`registration.poses_alike`) on all.
-    Empty for an original without such an axis, and where ``found`` puts
-    less than :data:`registration.POSES_FIT` of the suspect on it.
+    and so are the best turns about its fitted axis of revolution
+    (:func:`registration.fine_turns`: the true turn is a dip about a degree
+    wide, and the principal axis of a scan can lie degrees off the axis);
+    those that fit about as well (:func:`registration.poses_alike`) are
+    refined on all.  Empty for an original without such an axis, and where
+    ``found`` puts less than :data:`registration.POSES_FIT` of the suspect on it.
     """
     sub = suspect[:: max(1, len(suspect) // most)]
     sample = _coverage_sample(reference)
@@ -970,6 +974,8 @@ def _turned_poses(suspect, reference, found, spacing, tree, most=1500):
     if not starts or registration.overlap(registration.apply(found, sub), tree, sample,
                                           3.0 * spacing)[0] < registration.POSES_FIT:
         return []
+    anchor, direction, _ = _revolution_axis(reference, normals)
+    starts += registration.fine_turns(sub, tree, found, anchor, direction, bound=3.0 * spacing)
 
     def refined(points, start):
         return registration.refine_part(points, tree, reference, start, spacing=spacing, widths=POLISH_WIDTHS,
@@ -979,9 +985,24 @@ def _turned_poses(suspect, reference, found, spacing, tree, most=1500):
     return registration.distinct_poses(suspect, found, [refined(suspect, p) for p in alike], spacing)
 
 
-def _add_turns(poses, suspect, reference, found, spacing, tree):
+_AXES: "dict[str, tuple]" = {}     # sha256 of an original's coordinates -> its axis of revolution
+CACHED_AXES = 16
+
+
+def _revolution_axis(reference, normals=None):
+    """:func:`revolution.revolution_axis` of an original, kept per process by the hash of its coordinates."""
+    key = hashlib.sha256(np.ascontiguousarray(reference, dtype=np.float64).tobytes()).hexdigest()
+    if key not in _AXES:
+        normals = resampling.estimate_normals(reference) if normals is None else normals
+        if len(_AXES) >= CACHED_AXES:
+            _AXES.pop(next(iter(_AXES)))
+        _AXES[key] = revolution.revolution_axis(reference, normals)
+    return _AXES[key]
+
+
+def _add_turns(poses, suspect, reference, found, spacing, tree, normals=None):
     """``poses`` with :func:`_turned_poses` of ``found`` added, the tightest :data:`registration.MAX_POSES` kept."""
-    turned = _turned_poses(suspect, reference, found, spacing, tree)
+    turned = _turned_poses(suspect, reference, found, spacing, tree, normals)
     if turned:
         poses[:] = registration.poses_alike(suspect, tree, _coverage_sample(reference), found, [*poses, *turned],
                                             spacing)
@@ -1007,7 +1028,7 @@ def _revolution_pose(suspect, reference, spacing, tree, normals, most=1500):
     scale = features.scale_hint(features.dense_part(suspect), spacing)
     if scale is None:
         return None
-    axis = revolution.revolution_axis(reference, normals)
+    axis = _revolution_axis(reference, normals)
     starts = revolution.revolution_poses(suspect, resampling.estimate_normals(suspect), reference, axis, tree, spacing,
                                          scale, nearest=NearestTree)[:REVOLUTION_STARTS]
     if not starts:

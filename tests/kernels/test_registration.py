@@ -215,3 +215,38 @@ def test_poses_alike_keeps_distinct_poses_that_fit_as_well_and_drops_the_rest():
     off = registration.Similarity(np.eye(3), 1.0, np.array([10.0 * spacing, 0.0, 0.0]))
     kept = registration.poses_alike(part, cKDTree(tube), tube[::10], identity, [same, off, turn], spacing)
     assert len(kept) == 1 and kept[0] is turn
+
+
+def test_fine_turns_find_the_narrow_dip_of_the_true_turn_about_an_axis_of_revolution():
+    # a vase-like surface of revolution with fine bumps of its own, as a scan has: every turn about
+    # the axis fits nearly alike; a 14 % subset of its points lies exactly on it only at the true turn
+    from scipy.spatial import cKDTree
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(4)
+    z, phi = rng.uniform(-2.0, 2.0, 20000), rng.uniform(0.0, 2.0 * np.pi, 20000)
+    radius = 1.0 + 0.3 * np.sin(1.5 * z) + 0.01 * np.sin(7.0 * phi + 3.0 * z) * np.cos(11.0 * phi)
+    shape = np.stack([radius * np.cos(phi), radius * np.sin(phi), z], axis=1)
+    spacing = float(np.median(cKDTree(shape).query(shape, k=2)[0][:, 1]))
+    sub = shape[rng.choice(len(shape), 2800, replace=False)]
+    axis = np.array([0.0, 0.0, 1.0])
+    true_turn = 37.3
+    back = Rotation.from_rotvec(-np.radians(true_turn) * axis).as_matrix()
+    copy = sub @ back * 2.0 + [1.0, -3.0, 0.5]                      # turned, scaled, moved
+    truth = registration.Similarity(back, 0.5, -0.5 * back @ np.array([1.0, -3.0, 0.5]))
+    assert np.abs(apply(truth, copy) - sub).max() < 1e-9
+    tree = cKDTree(shape)
+
+    def median(pose):
+        return float(np.median(tree.query(apply(pose, copy))[0])) / spacing
+
+    for off in (2.6, -4.2):
+        turn = Rotation.from_rotvec(np.radians(off) * axis).as_matrix()
+        start = registration.Similarity(turn @ truth.rotation, truth.scale, turn @ truth.translation)
+        assert median(start) > 1.0                      # a few degrees off, the subset lies off the surface
+        found = registration.fine_turns(copy, tree, start, np.zeros(3), axis, bound=3.0 * spacing)
+        assert 1 <= len(found) <= registration.TURN_KEPT
+        best = found[0]
+        error = np.degrees(np.arccos(np.clip((np.trace(best.rotation @ truth.rotation.T) - 1.0) / 2.0, -1.0, 1.0)))
+        assert error <= registration.TURN_FINE, (off, error)
+        assert median(best) < 0.2 * median(start)
