@@ -985,13 +985,17 @@ def _turned_poses(suspect, reference, found, spacing, tree, normals=None, most=1
     return registration.distinct_poses(suspect, found, [refined(suspect, p) for p in alike], spacing)
 
 
-_AXES: "dict[str, tuple]" = {}     # sha256 of an original's coordinates -> its axis of revolution
+_AXES: "dict[tuple, tuple]" = {}     # sha256 of an original's coordinates and normals -> its axis of revolution
 CACHED_AXES = 16
 
 
 def _revolution_axis(reference, normals=None):
-    """:func:`revolution.revolution_axis` of an original, kept per process by the hash of its coordinates."""
-    key = hashlib.sha256(np.ascontiguousarray(reference, dtype=np.float64).tobytes()).hexdigest()
+    """:func:`revolution.revolution_axis` of an original, kept per process by the hash of its coordinates
+    and of the normals given (None: estimated), so that no check's axis depends on an earlier check's."""
+    def digest(array):
+        return hashlib.sha256(np.ascontiguousarray(array, dtype=np.float64).tobytes()).hexdigest()
+
+    key = (digest(reference), None if normals is None else digest(normals))
     if key not in _AXES:
         normals = resampling.estimate_normals(reference) if normals is None else normals
         if len(_AXES) >= CACHED_AXES:
