@@ -230,8 +230,9 @@ def match_profile(part, whole, scale_hint, spacing, *, top=4, most=400, whole_tr
             lo, hi = zlo - z.min(), zhi - z.max()
             if hi < lo:
                 continue
-            for t in np.arange(lo, hi + 2 * spacing, 2 * spacing):
-                found.append((cost(s, t, f), s, t, f))
+            offsets = np.arange(lo, hi + 2 * spacing, 2 * spacing)
+            found.extend(zip(_grid_costs(tree, z, s * sample[:, 1], offsets), [s] * len(offsets), offsets,
+                             [f] * len(offsets)))
     found.sort()
     out = []
     for c, s, t, f in found:
@@ -241,6 +242,14 @@ def match_profile(part, whole, scale_hint, spacing, *, top=4, most=400, whole_tr
         if len(out) == top:
             break
     return sorted(out)
+
+
+def _grid_costs(tree, z, r, offsets):
+    """The median distance to ``tree`` of the profile ``(z + t, r)`` at each offset t, one query for all, (T,) float."""
+    heights = z[None, :] + offsets[:, None]
+    rows = np.stack([heights.ravel(), np.broadcast_to(r, heights.shape).ravel()], axis=1)
+    d, _ = tree.query(rows)
+    return [float(c) for c in np.median(d.reshape(len(offsets), -1), axis=1)]
 
 
 def _refine_profile(cost, c, s, t, f, spacing):
@@ -380,7 +389,9 @@ def _turn_scan(probe, anchor, direction, s, t, f, anchor_o, dir_o, frame_o, tree
     def pose(rot):
         return Similarity(rot, float(s), anchor_o + t * dir_o - s * rot @ anchor)
 
-    costs = np.array([float(np.median(tree.query(s * probe @ rot.T + pose(rot).translation)[0])) for rot in turned])
+    # every turn's probe in one query: the same distances as one query a turn
+    moved = np.concatenate([s * probe @ rot.T + pose(rot).translation for rot in turned])
+    costs = np.median(tree.query(moved)[0].reshape(len(turned), -1), axis=1)
     minima = [i for i in np.argsort(costs)
               if costs[i] <= costs[i - 1] and costs[i] <= costs[(i + 1) % len(costs)]][:turns]
     return [(float(costs[i]), pose(turned[i])) for i in minima]
