@@ -27,6 +27,11 @@ __all__ = ["revolution_axes", "revolution_axis", "profile", "thickness", "match_
 AXIS_DIRECTIONS = 2000   # directions of the hemisphere tried for an axis
 TURN_STEPS = 720         # turns about the axis tried (half a degree)
 SCALE_RANGE = 1.7        # the profile's scale is sought within this factor of the hint, either way
+# Most median distance (original spacings) of a part's profile about its own axis to the original's,
+# at its best scale and height, for the part to be turned (bench/RESULTS.md, "A profile gate"): crops
+# of the shared scans' solids of revolution and of the leak benchmark's match within 0.2, unrelated
+# shapes mostly from 0.5 up; the turns cost an unrelated suspect about 9 s a candidate.
+PROFILE_CUT = 0.5
 
 
 def _hemisphere(n):
@@ -338,7 +343,9 @@ def revolution_poses(part, part_normals, original, original_axis, tree, spacing,
     list of (float, Similarity)
         Median distance of the part's points to the original at each pose,
         and the pose (part to original), best first; empty when the part
-        fixes no axis (a flat or nearly flat part).
+        fixes no axis (a flat or nearly flat part), or when its profile about
+        every axis it fixes lies farther than :data:`PROFILE_CUT` spacings
+        from the original's (a part of some other shape).
     """
     sub = part[:: max(1, len(part) // most)]
     anchor_o, dir_o, _ = original_axis
@@ -363,10 +370,12 @@ def _turns(sub, anchor_s, dir_s, anchor_o, dir_o, frame_o, whole, whole_tree, tr
     probe = sub[:: max(1, len(sub) // 300)]
     out = []
     axis = (anchor_s, dir_s)
-    for _ in range(rounds):
+    for round_ in range(rounds):
         best = (np.inf, None)
-        for _, s, t, f in match_profile(profile(sub, *axis), whole, scale_hint, spacing,
-                                            whole_tree=whole_tree)[:matches]:
+        found_matches = match_profile(profile(sub, *axis), whole, scale_hint, spacing, whole_tree=whole_tree)
+        if round_ == 0 and (not found_matches or found_matches[0][0] > PROFILE_CUT * spacing):
+            return []      # the part's profile lies on no stretch of the original's: not a part of it
+        for _, s, t, f in found_matches[:matches]:
             anchor, direction, s, t = _refine_axis(sub, *axis, s, t, f, whole_tree, spacing)
             found = _turn_scan(probe, anchor, direction, s, t, f, anchor_o, dir_o, frame_o, tree, turns)
             out.extend(found)

@@ -70,3 +70,21 @@ def test_thickness_is_least_about_the_true_axis():
     true = revolution.thickness(shape, np.zeros(3), np.array([0.0, 0.0, 1.0]))
     tilted = np.array([np.sin(0.2), 0.0, np.cos(0.2)])
     assert true < 0.5 * revolution.thickness(shape, np.zeros(3), tilted)
+
+
+def test_a_part_of_another_shape_is_not_turned_and_a_part_of_the_original_is():
+    # the same vase squeezed to an elliptic section: no profile about any axis lies on the vase's,
+    # so it is not turned (revolution.PROFILE_CUT); the vase's own crop, cut alike, is
+    shape = _vase(8000)
+    spacing = float(np.median(resampling.nearest_spacing(shape)))
+    tree = NearestTree(shape)
+    axis = revolution.revolution_axis(shape, resampling.estimate_normals(shape))
+    squeezed = shape * np.array([1.35, 0.75, 1.0])
+    normal = np.array([0.6, 0.0, 0.8])
+    found = {}
+    for name, cloud in (("own", shape), ("other", squeezed)):
+        part = cloud[cloud @ normal >= np.quantile(cloud @ normal, 0.7)]
+        found[name] = revolution.revolution_poses(part, resampling.estimate_normals(part), shape, axis, tree,
+                                                  spacing, 1.0, nearest=NearestTree)
+    assert found["own"] and found["own"][0][0] < spacing
+    assert found["other"] == []
