@@ -477,3 +477,21 @@ def test_a_vase_crop_is_laid_where_it_was_cut_or_read_at_a_pose_that_is(models):
     residual = [float(np.median(tree.query(registration.apply(p, suspect))[0])) / spacing for p in [found, *poses]]
     assert len(poses) <= registration.MAX_POSES
     assert min(residual) < 0.05
+
+
+def test_feature_matching_finds_the_greatest_product_both_ways_across_chunks():
+    from pipeline.features import match
+
+    rng = np.random.default_rng(4)
+    reference = rng.normal(size=(700, 33)).astype(np.float32)
+    query = np.concatenate([rng.normal(size=(500, 33)), reference[:40], reference[:40]]).astype(np.float32)
+    reference /= np.linalg.norm(reference, axis=1, keepdims=True)
+    query /= np.linalg.norm(query, axis=1, keepdims=True)
+    sim = query.astype(np.float64) @ reference.T.astype(np.float64)
+    rows, cols = np.arange(len(query)), np.arange(len(reference))
+    for chunk in (64, 2048):      # the greatest product of a column may lie in any chunk
+        forward, back = match(query, reference, chunk=chunk)
+        assert np.all(sim[rows, forward] >= sim.max(axis=1) - 1e-6)
+        assert np.all(sim[back, cols] >= sim.max(axis=0) - 1e-6)
+        # a reference row's own copies in the queries are its match, whichever copy
+        assert np.all((back[:40] == np.arange(500, 540)) | (back[:40] == np.arange(540, 580)))
