@@ -17,11 +17,15 @@ import json
 import sys
 from pathlib import Path
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 WORK = ROOT / "bench" / "results" / "leaks"
+
+from pipeline import threads  # noqa: E402  (one BLAS/OpenMP thread, before NumPy loads)
+
+threads.pin()
+
+import numpy as np  # noqa: E402
 
 from pipeline import features  # noqa: E402
 from pipeline.io.pointcloud import read_points  # noqa: E402
