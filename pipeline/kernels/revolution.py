@@ -29,8 +29,9 @@ TURN_STEPS = 720         # turns about the axis tried (half a degree)
 SCALE_RANGE = 1.7        # the profile's scale is sought within this factor of the hint, either way
 # Most median distance (original spacings) of a part's profile about its own axis to the original's,
 # at its best scale and height, for the part to be turned (bench/RESULTS.md, "A profile gate"): crops
-# of the shared scans' solids of revolution and of the leak benchmark's match within 0.2, unrelated
-# shapes mostly from 0.5 up; the turns cost an unrelated suspect about 9 s a candidate.
+# of the shared scans' solids of revolution match within 0.2, the leak benchmark's crops and outlier
+# copies about some axis within 0.49 (a blob with 50 % outliers), unrelated shapes mostly from 0.5
+# up; the turns cost an unrelated suspect about 9 s a candidate.
 PROFILE_CUT = 0.5
 
 
