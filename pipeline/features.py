@@ -118,22 +118,35 @@ def match(query, reference, *, chunk=2048):
         Nearest reference row of every query row.
     back : (r,) int
         Nearest query row of every reference row.
+
+    Of equal products the first row is kept, both ways (for finite products).
     """
     query = np.asarray(query, dtype=np.float32)
     reference = np.asarray(reference, dtype=np.float32)
     forward = np.empty(len(query), dtype=np.int64)
     best = np.full(len(reference), -np.inf, dtype=np.float32)
     back = np.zeros(len(reference), dtype=np.int64)
+    cols = np.arange(len(reference))
     for lo in range(0, len(query), chunk):
         sim = query[lo:lo + chunk] @ reference.T                          # (c, r): one product, both ways
         forward[lo:lo + chunk] = sim.argmax(axis=1)
-        # the first query row of the greatest product, row by row: argmax down the columns of a
-        # C-ordered array reads it across the cache, six times slower
-        for i, row in enumerate(sim, start=lo):
-            better = row > best
-            np.copyto(best, row, where=better)
-            back[better] = i
+        if len(reference) >= MATCH_ROW_SCAN:
+            # the first query row of the greatest product, row by row: argmax down the columns
+            # of a wide C-ordered array reads it across the cache (71 against 11 ms, 2,048 x 6,000)
+            for i, row in enumerate(sim, start=lo):
+                better = row > best
+                np.copyto(best, row, where=better)
+                back[better] = i
+            continue
+        rows = sim.argmax(axis=0)
+        value = sim[rows, cols]
+        better = value > best
+        best[better] = value[better]
+        back[better] = rows[better] + lo
     return forward, back
+
+
+MATCH_ROW_SCAN = 1024    # reference rows from which :func:`match` scans a chunk's rows one by one
 
 
 def dense_part(points, k=6, factor=3.0):
