@@ -481,14 +481,13 @@ def test_a_vase_crop_is_laid_where_it_was_cut_or_read_at_a_pose_that_is(models):
 
 @pytest.mark.parametrize("n_reference", [300, 1500])     # below and above features.MATCH_ROW_SCAN
 def test_feature_matching_keeps_the_first_greatest_product_both_ways_across_chunks(n_reference):
-    from pipeline.features import match
-
+    assert 300 < features.MATCH_ROW_SCAN <= 1500      # both of match's ways are taken
     # small integers: every product is exact in float32 whatever the BLAS kernel, and ties abound
     rng = np.random.default_rng(4)
     reference = rng.integers(-2, 3, size=(n_reference, 8)).astype(np.float32)
     query = np.concatenate([rng.integers(-2, 3, size=(500, 8)), reference[:40], reference[:40]]).astype(np.float32)
     sim = query.astype(np.float64) @ reference.T.astype(np.float64)
     for chunk in (1, 7, 64, 2048):
-        forward, back = match(query, reference, chunk=chunk)
+        forward, back = features.match(query, reference, chunk=chunk)
         np.testing.assert_array_equal(forward, sim.argmax(axis=1))
         np.testing.assert_array_equal(back, sim.argmax(axis=0))
