@@ -40,7 +40,7 @@ demo: setup
 # two test processes side by side (each file's tests in one of them, so a module's world is built once)
 TEST_JOBS ?= 2
 test: setup
-	$(PY) -m pytest -q -n $(TEST_JOBS) --dist loadfile --no-loadscope-reorder
+	$(PY) -m pytest -q -n $(TEST_JOBS) --dist loadfile --no-loadscope-reorder --max-worker-restart=0
 
 bench: setup
 	$(PY) bench/run.py

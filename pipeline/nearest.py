@@ -50,4 +50,11 @@ class NearestTree:
         x = np.ascontiguousarray(x, dtype=np.float64).reshape(-1, self.data.shape[1])
         bound = float(distance_upper_bound)
         dist, idx = self._tree.query(x, k=int(k), distance_upper_bound=bound if np.isfinite(bound) else None)
-        return dist, idx.astype(np.int64)
+        idx = idx.astype(np.int64)
+        # pykdtree marks a neighbour it has none for (k past the tree's size, a NaN row) with its
+        # largest index and a finite distance: say it as cKDTree does, index m and distance inf
+        missing = idx >= len(self.data)
+        if missing.any():
+            idx[missing] = len(self.data)
+            dist = np.where(missing, np.inf, dist)
+        return dist, idx

@@ -42,6 +42,19 @@ def test_k_nearest_points_and_odd_inputs(cloud):
     assert dist.shape == idx.shape == (0,)
 
 
+def test_a_neighbour_it_has_none_for_is_missing_as_in_cKDTree():
+    rng = np.random.default_rng(2)
+    points, queries = rng.normal(size=(3, 3)), rng.normal(size=(5, 3))
+    dist, idx = NearestTree(points).query(queries, k=5)             # more neighbours than points
+    want_dist, want_idx = cKDTree(points).query(queries, k=5)
+    np.testing.assert_array_equal(idx, want_idx)
+    np.testing.assert_array_equal(dist, want_dist)
+    assert (idx[:, 3:] == 3).all() and np.isinf(dist[:, 3:]).all()
+    queries[1] = np.nan                                             # cKDTree refuses it; no neighbour here
+    dist, idx = NearestTree(points).query(queries)
+    assert idx[1] == 3 and np.isinf(dist[1]) and (idx[[0, 2, 3, 4]] == want_idx[[0, 2, 3, 4], 0]).all()
+
+
 def test_registration_finds_the_same_poses_through_either_tree():
     # a turned crop of a vase: the robust steps, ICP and the axis-and-profile search (2-D trees too)
     rng = np.random.default_rng(3)
