@@ -35,13 +35,13 @@ def resample(points, n_points, rng=None, *, depth=8):
     No input point survives: samples are drawn uniformly on the reconstructed
     triangles, away from the (trimmed) low-density parts of the surface.
 
-    open3d's reconstruction is multithreaded: its vertices come in another
-    order at each call, and a few tenths of a per cent of its triangles join
-    other vertices, so its own sampler, which walks the triangles in order,
-    draws other points for the same seed.
-    :func:`~pipeline.kernels.attacks.sample_triangles` draws them instead,
-    from each triangle's geometry and the seed: the same seed gives the same
-    points, but for the few triangles that differ.
+    The reconstruction runs on one thread.  On its default of a thread per
+    core it gave its vertices in another order at each call, with a few
+    tenths of a per cent of the triangles joining other vertices, and it can
+    crash the process at random (Open3D issue 6828; it took a test process
+    down in CI).  The samples are drawn by
+    :func:`~pipeline.kernels.attacks.sample_triangles`, from each triangle's
+    geometry and the seed, not in the order open3d lists the triangles.
 
     Parameters
     ----------
@@ -59,7 +59,7 @@ def resample(points, n_points, rng=None, *, depth=8):
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector((points - centre) / scale))
     cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=20))
     cloud.orient_normals_consistent_tangent_plane(12)
-    mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(cloud, depth=depth)
+    mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(cloud, depth=depth, n_threads=1)
     density = np.asarray(density)
     mesh.remove_vertices_by_mask(density < np.quantile(density, 0.05))
     out = attacks.sample_triangles(np.asarray(mesh.vertices), np.asarray(mesh.triangles), int(n_points), rng)
