@@ -1076,8 +1076,23 @@ def suspect_views(points):
     return views
 
 
+EXACT_BLOCK = 64     # columns a block of :func:`nearest_exact`'s bound on the k-th greatest similarity
+
+
 def nearest_exact(queries, features, k):
     """The ``k`` most similar rows of ``features`` for each query row (unit rows: cosine).
+
+    The k-th greatest of the row's block maxima (blocks of
+    :data:`EXACT_BLOCK` columns) is a lower bound of its k-th greatest
+    similarity: each of those k blocks holds a value at least as great.
+    Only the few columns at or above it are sorted, not all N.  Equal
+    similarities come in column order.
+
+    Parameters
+    ----------
+    queries : (c, d) float
+    features : (N, d) float
+    k : int
 
     Returns
     -------
@@ -1085,10 +1100,27 @@ def nearest_exact(queries, features, k):
     similarity : (c, k) float
     """
     sim = queries @ features.T                                             # (c, N)
-    top = np.argpartition(-sim, k - 1, axis=1)[:, :k]
-    val = np.take_along_axis(sim, top, axis=1)
-    order = np.argsort(-val, axis=1, kind="stable")
-    return np.take_along_axis(top, order, axis=1), np.take_along_axis(val, order, axis=1)
+    c, n = sim.shape
+    blocks = n // EXACT_BLOCK
+    if blocks < k:
+        return _top_sorted(sim, np.broadcast_to(np.arange(n), sim.shape), k)
+    maxima = sim[:, :blocks * EXACT_BLOCK].reshape(c, blocks, EXACT_BLOCK).max(axis=2)
+    bound = np.partition(maxima, blocks - k, axis=1)[:, blocks - k]
+    rows, cols = np.nonzero(sim >= bound[:, None])
+    if len(rows) == 0 or np.bincount(rows, minlength=c).min() < k:           # NaN similarities
+        return _top_sorted(sim, np.broadcast_to(np.arange(n), sim.shape), k)
+    vals = sim[rows, cols]
+    order = np.lexsort((cols, -vals, rows))                                # by row, greatest first, then column
+    rows, cols, vals = rows[order], cols[order], vals[order]
+    starts = np.searchsorted(rows, np.arange(c))
+    pick = starts[:, None] + np.arange(k)
+    return cols[pick], vals[pick]
+
+
+def _top_sorted(sim, cols, k):
+    """(c, k) columns and values of each row's k greatest ``sim``, greatest first, equal ones in column order."""
+    order = np.lexsort((cols, -sim), axis=1)[:, :k]
+    return np.take_along_axis(cols, order, axis=1).copy(), np.take_along_axis(sim, order, axis=1)
 
 
 def _faiss():
