@@ -37,7 +37,9 @@ setup: $(STAMP) $(NPM_STAMP)
 demo: setup
 	$(VENV)/bin/pointmark demo
 
-# two test processes side by side (each file's tests in one of them, so a module's world is built once)
+# two test processes side by side (each file's tests in one of them, so a module's world is built once);
+# a test process that crashes fails the run: pytest-xdist 3.8's loadfile scheduling can wait forever
+# for the replacement of a crashed one (bench/RESULTS.md, "CI's last run")
 TEST_JOBS ?= 2
 test: setup
 	$(PY) -m pytest -q -n $(TEST_JOBS) --dist loadfile --no-loadscope-reorder --max-worker-restart=0

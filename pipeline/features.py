@@ -1076,51 +1076,92 @@ def suspect_views(points):
     return views
 
 
-EXACT_BLOCK = 64     # columns a block of :func:`nearest_exact`'s bound on the k-th greatest similarity
+EXACT_BLOCK = 64   # columns a block: a row's k-th greatest block maximum bounds its k-th greatest similarity
+EXACT_SPARE = 4    # a row with more than 4 k + 64 columns at or above its bound (equal similarities) is selected linearly
 
 
 def nearest_exact(queries, features, k):
     """The ``k`` most similar rows of ``features`` for each query row (unit rows: cosine).
 
-    The k-th greatest of the row's block maxima (blocks of
+    The k-th greatest of a row's block maxima (blocks of
     :data:`EXACT_BLOCK` columns) is a lower bound of its k-th greatest
     similarity: each of those k blocks holds a value at least as great.
-    Only the few columns at or above it are sorted, not all N.  Equal
-    similarities come in column order.
+    Only the few columns at or above it are sorted, not all N.  Rows that
+    the bound does not narrow (many equal similarities, NaN) are selected
+    in linear time instead.  Equal similarities come in column order; NaN
+    counts as the least.
 
     Parameters
     ----------
     queries : (c, d) float
     features : (N, d) float
-    k : int
+    k : int, 1 to N
 
     Returns
     -------
     top : (c, k) int, most similar first
     similarity : (c, k) float
     """
-    sim = queries @ features.T                                             # (c, N)
+    return _top_k(queries @ features.T, k)
+
+
+def _top_k(sim, k):
+    """:func:`nearest_exact`'s answer from the similarities ``sim`` (c, N)."""
     c, n = sim.shape
+    if not 1 <= k <= n:
+        raise ValueError(f"k = {k}: the nearest rows asked must be 1 to the {n} rows")
+    top, val = np.empty((c, k), dtype=np.int64), np.empty((c, k), dtype=sim.dtype)
+    hard = np.ones(c, dtype=bool)
     blocks = n // EXACT_BLOCK
-    if blocks < k:
-        return _top_sorted(sim, np.broadcast_to(np.arange(n), sim.shape), k)
-    maxima = sim[:, :blocks * EXACT_BLOCK].reshape(c, blocks, EXACT_BLOCK).max(axis=2)
-    bound = np.partition(maxima, blocks - k, axis=1)[:, blocks - k]
-    rows, cols = np.nonzero(sim >= bound[:, None])
-    if len(rows) == 0 or np.bincount(rows, minlength=c).min() < k:           # NaN similarities
-        return _top_sorted(sim, np.broadcast_to(np.arange(n), sim.shape), k)
-    vals = sim[rows, cols]
-    order = np.lexsort((cols, -vals, rows))                                # by row, greatest first, then column
-    rows, cols, vals = rows[order], cols[order], vals[order]
-    starts = np.searchsorted(rows, np.arange(c))
-    pick = starts[:, None] + np.arange(k)
-    return cols[pick], vals[pick]
+    if blocks >= k:
+        maxima = sim[:, :blocks * EXACT_BLOCK].reshape(c, blocks, EXACT_BLOCK).max(axis=2)
+        bound = np.partition(maxima, blocks - k, axis=1)[:, blocks - k]
+        above = sim >= bound[:, None]
+        count = above.sum(axis=1)
+        hard = (count < k) | (count > EXACT_SPARE * k + EXACT_BLOCK)
+        above[hard] = False
+        easy = np.flatnonzero(~hard)
+        rows, cols = np.nonzero(above)
+        vals = sim[rows, cols]
+        order = np.lexsort((cols, -vals, rows))                            # by row, greatest first, then column
+        rows, cols, vals = rows[order], cols[order], vals[order]
+        pick = np.searchsorted(rows, easy)[:, None] + np.arange(k)
+        top[easy], val[easy] = cols[pick], vals[pick]
+    if hard.any():
+        top[hard], val[hard] = _top_select(sim[hard], k)
+    return top, val
 
 
-def _top_sorted(sim, cols, k):
-    """(c, k) columns and values of each row's k greatest ``sim``, greatest first, equal ones in column order."""
-    order = np.lexsort((cols, -sim), axis=1)[:, :k]
-    return np.take_along_axis(cols, order, axis=1).copy(), np.take_along_axis(sim, order, axis=1)
+def _top_select(sim, k):
+    """:func:`nearest_exact`'s answer for each row of ``sim`` (c, N), in linear time but for rows with NaN."""
+    key = -sim                                                             # NaN last, as in a sort
+    kth = np.partition(key, k - 1, axis=1)[:, k - 1:k]
+    chosen, equal = key < kth, key == kth
+    need = k - chosen.sum(axis=1)                                          # equal ones to take, first first
+    ties = np.flatnonzero(equal.sum(axis=1) > need)
+    chosen |= equal
+    chosen[ties] &= ~equal[ties] | _first_true(equal[ties], need[ties])
+    short = np.isnan(kth[:, 0])                                            # fewer than k numbers
+    cols = np.empty((len(sim), k), dtype=np.int64)
+    cols[~short] = np.nonzero(chosen[~short])[1].reshape(-1, k)            # exactly k a row, in column order
+    cols[short] = np.lexsort((np.broadcast_to(np.arange(sim.shape[1]), key[short].shape), key[short]), axis=1)[:, :k]
+    vals = np.take_along_axis(sim, cols, axis=1)
+    order = np.lexsort((cols, -vals), axis=1)
+    return np.take_along_axis(cols, order, axis=1), np.take_along_axis(vals, order, axis=1)
+
+
+def _first_true(mask, count, width=1024):
+    """(t, N) bool: the first ``count[i]`` True entries of each row of ``mask``, by blocks of ``width`` columns."""
+    out = np.zeros_like(mask)
+    seen = np.zeros(len(mask), dtype=np.int64)
+    for lo in range(0, mask.shape[1], width):
+        block = mask[:, lo:lo + width]
+        ranks = np.cumsum(block, axis=1, dtype=np.int64) + seen[:, None]
+        out[:, lo:lo + width] = block & (ranks <= count[:, None])
+        seen = ranks[:, -1]
+        if (seen >= count).all():
+            break
+    return out
 
 
 def _faiss():

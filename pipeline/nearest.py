@@ -39,20 +39,23 @@ class NearestTree:
         x : (n, d) float
         k : int
         distance_upper_bound : float
-            Neighbours farther than this are missing: distance ``inf`` and
-            index ``m``, as cKDTree gives them.
+            Neighbours farther than this are missing.
 
         Returns
         -------
         dist : (n,) or (n, k) float64
         idx : (n,) or (n, k) int64
+            A missing neighbour has distance ``inf`` and index ``m``, as in
+            cKDTree: one past the bound, past the tree's ``m`` points (``k``
+            greater than ``m``), or of a query row that is not finite (which
+            cKDTree refuses).
         """
         x = np.ascontiguousarray(x, dtype=np.float64).reshape(-1, self.data.shape[1])
         bound = float(distance_upper_bound)
         dist, idx = self._tree.query(x, k=int(k), distance_upper_bound=bound if np.isfinite(bound) else None)
         idx = idx.astype(np.int64)
-        # pykdtree marks a neighbour it has none for (k past the tree's size, a NaN row) with its
-        # largest index and a finite distance: say it as cKDTree does, index m and distance inf
+        # pykdtree gives a neighbour it has none for (k past m, a NaN or inf row) its largest
+        # index, 4294967295, and a finite distance, 1.3e154
         missing = idx >= len(self.data)
         if missing.any():
             idx[missing] = len(self.data)

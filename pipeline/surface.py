@@ -38,8 +38,8 @@ def resample(points, n_points, rng=None, *, depth=8):
     The reconstruction runs on one thread.  On its default of a thread per
     core it gave its vertices in another order at each call, with a few
     tenths of a per cent of the triangles joining other vertices, and it can
-    crash the process at random (Open3D issue 6828; it took a test process
-    down in CI).  The samples are drawn by
+    crash the process at random (Open3D issue 6828; most likely what took
+    a test process down in CI on 2026-12-06).  The samples are drawn by
     :func:`~pipeline.kernels.attacks.sample_triangles`, from each triangle's
     geometry and the seed, not in the order open3d lists the triangles.
 

@@ -107,20 +107,25 @@ def test_the_ivf_finds_the_exact_nearest_descriptor_almost_always(models, index,
     assert [k for k, _ in ivf_index.rank(suspect, top_k=3)] == [k for k, _ in index.rank(suspect, top_k=3)]
 
 
-@pytest.mark.parametrize("n_rows", [40, 700, 5000])
+@pytest.mark.parametrize("n_rows", [40, 512, 700, 5000])
 @pytest.mark.parametrize("k", [1, 8])
 def test_exact_search_is_a_full_sort_of_every_row(n_rows, k):
     # small-integer products (exact in float32) with many equal ones: the k greatest of each row,
-    # greatest first, equal ones in column order, whether the block bound applies (5000) or not (40)
+    # greatest first, equal ones in column order, whether the block bound applies (512 rows: as many
+    # blocks as k = 8) or not (40); a zero query (all equal) and a NaN one (NaN counts as least)
     rng = np.random.default_rng(n_rows + k)
     rows = rng.integers(-3, 4, size=(n_rows, 6)).astype(np.float32)
     queries = rng.integers(-3, 4, size=(300, 6)).astype(np.float32)
-    top, sim = features.nearest_exact(queries, rows, k)
-    full = queries @ rows.T
+    queries[7], queries[9, 2] = 0.0, np.nan
+    with np.errstate(invalid="ignore"):
+        top, sim = features.nearest_exact(queries, rows, k)
+        full = queries @ rows.T
     want = np.array([np.lexsort((np.arange(n_rows), -r))[:k] for r in full])
     np.testing.assert_array_equal(top, want)
     np.testing.assert_array_equal(sim, np.take_along_axis(full, want, axis=1))
-    assert top.shape == sim.shape == (300, k)
+    assert top.shape == sim.shape == (300, k) and (top[7] == np.arange(k)).all()
+    with pytest.raises(ValueError, match="1 to the"):
+        features.nearest_exact(queries, rows[:k - 1] if k > 1 else rows[:0], k)
 
 
 def test_the_ivf_is_trained_alike_in_any_process_and_refuses_rows_that_are_not_fpfh(index, tmp_path):
