@@ -65,7 +65,7 @@ def triage(folder):
     from pipeline.orchestrate import candidates
 
     folder = Path(folder)
-    index = next(p for p in sorted((folder / "scan" / "state").glob("index-*.npz")))
+    index = sorted((folder / "scan" / "state").glob("index-*.npz"))[0]
     out = {}
     for suspect in sorted((folder / "suspects").glob("*.ply")):
         candidates.triage(suspect, {}, index)                  # the index loaded once, as a scan's worker has it

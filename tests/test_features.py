@@ -112,18 +112,19 @@ def test_the_ivf_finds_the_exact_nearest_descriptor_almost_always(models, index,
 def test_exact_search_is_a_full_sort_of_every_row(n_rows, k):
     # small-integer products (exact in float32) with many equal ones: the k greatest of each row,
     # greatest first, equal ones in column order, whether the block bound applies (512 rows: as many
-    # blocks as k = 8) or not (40); a zero query (all equal) and a NaN one (NaN counts as least)
+    # blocks as k = 8) or not (40); a zero query (all equal), a NaN query and a NaN index row (NaN
+    # counts as least: a NaN in one block of every row)
     rng = np.random.default_rng(n_rows + k)
     rows = rng.integers(-3, 4, size=(n_rows, 6)).astype(np.float32)
     queries = rng.integers(-3, 4, size=(300, 6)).astype(np.float32)
-    queries[7], queries[9, 2] = 0.0, np.nan
+    queries[7], queries[9, 2], rows[3, 0] = 0.0, np.nan, np.nan
     with np.errstate(invalid="ignore"):
         top, sim = features.nearest_exact(queries, rows, k)
         full = queries @ rows.T
     want = np.array([np.lexsort((np.arange(n_rows), -r))[:k] for r in full])
     np.testing.assert_array_equal(top, want)
     np.testing.assert_array_equal(sim, np.take_along_axis(full, want, axis=1))
-    assert top.shape == sim.shape == (300, k) and (top[7] == np.arange(k)).all()
+    assert top.shape == sim.shape == (300, k) and (top[7] == [0, 1, 2, 4, 5, 6, 7, 8][:k]).all()
     with pytest.raises(ValueError, match="1 to the"):
         features.nearest_exact(queries, rows[:k - 1] if k > 1 else rows[:0], k)
 
