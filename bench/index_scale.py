@@ -3,18 +3,23 @@
 ``python bench/index_scale.py [ASSETS ...]`` (default 100 1000 10000) writes
 ``bench/results/index_scale.md``.
 
-Catalogues are synthetic, 3,000 descriptors an asset.  A pool of real FPFH
+Catalogues are synthetic, :data:`features.INDEX_KEYPOINTS` (2,000) descriptors an asset (3,000 before
+2026-12-06).  A pool of real FPFH
 descriptor sets (the 14 shared scans and 24 procedural shapes, 4 kinds x 6
 seeds, each described at the 4 query scales: 152 sets) stands in for
-asset geometry; asset ``j`` resamples 3,000 rows of pool set ``j mod 152``
+asset geometry; asset ``j`` resamples that many rows of pool set ``j mod 152``
 and scales every bin by log-normal noise (sigma 0.15), after which its
 three histograms are rescaled to equal sums (as FPFH's are) and each row to
 unit norm.  Assets are seeded by their number, so a catalogue is built in
-chunks of 100 and regenerated for the exact search.  A suspect is 4 x 3,000
+chunks of 100 and regenerated for the exact search.  A suspect is 4 x as many
 rows of one asset's pool set under fresh noise (sigma 0.1), voted as
 :meth:`FeatureIndex.votes` votes (8 neighbours).  Recall@1: the share of
 1,000 of the suspects' rows whose nearest row through the IVF is the exact
 nearest row (exact search over every regenerated chunk).
+
+``INDEX_CODEC=SQ8 python bench/index_scale.py scale 1000 10000`` builds and measures only the IVF at
+those sizes, with those faiss codes, into ``bench/results/index_scale-SQ8-2000.md`` (``INDEX_ROWS`` sets the
+descriptors an asset, :data:`features.INDEX_KEYPOINTS` unless given).
 
 Two more tables: the faiss codecs on the real scans (why fp16 codes), and
 exact against IVF search per suspect around :data:`IVF_MIN` (the threshold).
@@ -36,13 +41,17 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 DATA = Path(os.environ.get("POINTMARK_TEST_DATA", ROOT.parent / "shared" / "data")) / "models"
 OUT = ROOT / "bench" / "results"
-ROWS = 3000          # descriptors an asset
 CHUNK = 100          # assets generated and added at a time
 SUSPECTS = 3
 RECALL_QUERIES = 1000
 PROBES = (16, 32)     # cells searched per query: the default (features.IVF_PROBE) and twice that
 
 from pipeline import features  # noqa: E402
+
+features.IVF_CODEC = os.environ.get("INDEX_CODEC", features.IVF_CODEC)
+ROWS = int(os.environ.get("INDEX_ROWS", features.INDEX_KEYPOINTS))   # descriptors an asset ...
+features.INDEX_KEYPOINTS = ROWS                                        # ... and a real suspect's description
+POOL_KEYPOINTS = 3000   # rows kept of each pool set (the pool's cache was first built at the old cap)
 
 
 def _pool():
@@ -57,7 +66,8 @@ def _pool():
     clouds = [read_points(p).points for p in sorted(DATA.glob("*.ply"))]
     clouds += [procedural_shape(kind, 20000, seed=s) for kind in ("blob", "torus", "terrain", "shell")
                for s in range(6)]
-    sets = [features.describe(c, factor=f)[1] for c in clouds for f in features.QUERY_SCALES]
+    sets = [features.describe(c, factor=f, max_keypoints=POOL_KEYPOINTS)[1] for c in clouds
+            for f in features.QUERY_SCALES]
     sets = [s for s in sets if len(s) >= 100]
     OUT.mkdir(parents=True, exist_ok=True)
     np.savez(cache, **{str(i): s for i, s in enumerate(sets)})
@@ -105,8 +115,9 @@ def _exact_top1(pool, n_assets, queries):
     return row
 
 
-def scale(pool, n_assets):
-    """Build, bytes, search and recall of the IVF index of ``n_assets`` synthetic assets."""
+def scale(pool, n_assets, keep_index=False):
+    """Build, bytes, search and recall of the IVF index of ``n_assets`` synthetic assets (and the index
+    itself under ``"index"`` with ``keep_index``)."""
     import faiss
 
     n_rows = n_assets * ROWS
@@ -137,6 +148,41 @@ def scale(pool, n_assets):
         found, _ = index.nearest(queries, 1, probe=probe)
         out[probe] = {"search_s": search, "recall": float((found[:, 0] == exact).mean()),
                       "asset_recall": float((found[:, 0] // ROWS == exact // ROWS).mean())}
+    if keep_index:
+        out["index"] = index
+    return out
+
+
+def _real_suspects():
+    """A crop of the birdbath and the bunny among clutter of three times its points (real scans)."""
+    from pipeline import surface
+    from pipeline.io.pointcloud import read_points
+
+    bunny = read_points(DATA / "bunny_zipper_faceref_34834.ply").points
+    birdbath = read_points(DATA / "nikolov_birdbath_18793.ply").points
+    return [surface.apply_chain(birdbath, [("crop", 0.5), ("random_similarity", None)], rng=1),
+            surface.apply_chain(bunny, [("random_similarity", None), ("clutter", 3.0)], rng=1)]
+
+
+def _real_search(index, n_assets):
+    """Seconds of the whole candidate search of each real suspect (:func:`_real_suspects`): its descriptors
+    at every query scale voted through ``index`` (:meth:`FeatureIndex.rank`), and its shape views against
+    ``n_assets`` x :data:`SHAPE_VIEWS` seeded random views (:meth:`FeatureIndex.shape_distances`); best of 2."""
+    index.shapes, index.shape_owner = _random_shapes(n_assets)
+    index.prior = np.zeros(len(index.keys))
+    suspects = _real_suspects()
+    index.shape_distances(suspects[0])          # the cumulative histograms, computed once per index
+    out = []
+    for points in suspects:
+        best = [np.inf, np.inf]
+        for _ in range(2):
+            t0 = time.perf_counter()
+            index.rank(points, top_k=10)
+            t1 = time.perf_counter()
+            index.shape_distances(points)
+            best = [min(best[0], t1 - t0), min(best[1], time.perf_counter() - t1)]
+        out.append(best)
+    index.shapes = index.shape_owner = None
     return out
 
 
@@ -234,6 +280,14 @@ def threshold(pool):
 SHAPE_VIEWS = 146     # D2 rows an asset holds: whole, 48 directions x 3 cut shares, its dense view
 
 
+def _random_shapes(n_assets):
+    """Seeded random D2 rows, :data:`SHAPE_VIEWS` an asset, and their owners (shape views' time does not
+    depend on their values)."""
+    gen = np.random.default_rng([38, n_assets, 2])
+    shapes = gen.random((n_assets * SHAPE_VIEWS, 32))
+    return shapes / shapes.sum(axis=1, keepdims=True), np.repeat(np.arange(n_assets, dtype=np.int32), SHAPE_VIEWS)
+
+
 def shape_scale(n_assets):
     """Seconds per suspect of :meth:`FeatureIndex.shape_distances` over ``n_assets`` assets' shape views.
 
@@ -241,19 +295,10 @@ def shape_scale(n_assets):
     real: a crop of the birdbath and the bunny among clutter of three times its points (every view of
     :func:`features.suspect_views`).
     """
-    from pipeline import surface
-    from pipeline.io.pointcloud import read_points
-
-    gen = np.random.default_rng([38, n_assets, 2])
-    shapes = gen.random((n_assets * SHAPE_VIEWS, 32))
-    shapes /= shapes.sum(axis=1, keepdims=True)
+    shapes, owner = _random_shapes(n_assets)
     index = features.FeatureIndex([f"a{j}" for j in range(n_assets)], np.zeros((0, 33), dtype=np.float32),
-                                  np.zeros(0, dtype=np.int32), ["h"] * n_assets, shapes=shapes,
-                                  shape_owner=np.repeat(np.arange(n_assets, dtype=np.int32), SHAPE_VIEWS))
-    bunny = read_points(DATA / "bunny_zipper_faceref_34834.ply").points
-    birdbath = read_points(DATA / "nikolov_birdbath_18793.ply").points
-    suspects = [surface.apply_chain(birdbath, [("crop", 0.5), ("random_similarity", None)], rng=1),
-                surface.apply_chain(bunny, [("random_similarity", None), ("clutter", 3.0)], rng=1)]
+                                  np.zeros(0, dtype=np.int32), ["h"] * n_assets, shapes=shapes, shape_owner=owner)
+    suspects = _real_suspects()
     index.shape_distances(suspects[0])          # the cumulative histograms, computed once per index
     out = []
     for points in suspects:
@@ -311,8 +356,34 @@ def main(sizes):
     (OUT / "index_scale.md").write_text("\n".join(lines + procs) + "\n")
 
 
+def scale_only(sizes):
+    """The IVF-at-scale rows alone, with the whole candidate search of two real suspects
+    (:func:`_real_search`), printed and kept in ``index_scale-CODEC-ROWS.md`` (``INDEX_CODEC``,
+    ``INDEX_ROWS``)."""
+    pool = _pool()
+    lines = [f"IVF codes {features.IVF_CODEC}, {time.strftime('%Y-%m-%d')}, one thread; 16 / 32 cells probed", "",
+             "| assets | rows | cells | build s | index bytes | bytes a row | search s per suspect | recall@1 "
+             "| same asset@1 | mapped: load s, search s, private MB, file-backed MB "
+             "| real suspects, votes + shape views s: birdbath crop; bunny among clutter |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---|"]
+    for n in sizes:
+        r = scale(pool, n, keep_index=True)
+        r["real"] = _real_search(r.pop("index"), n)
+        m = r["processes"]["mapped"]
+        lines.append(f"| {n:,} | {r['rows']:,} | {r['cells']:,} | {r['build_s']:.1f} | {r['bytes']:,} "
+                     f"| {r['bytes'] / r['rows']:.1f} | " + " | ".join(
+                         " / ".join(format(r[p][key], fmt) for p in PROBES)
+                         for key, fmt in (("search_s", ".2f"), ("recall", ".2%"), ("asset_recall", ".2%")))
+                     + f" | {m['load_s']:.1f}, {m['search_s']:.2f}, {m['anon_mb']:,.0f}, {m['file_mb']:,.0f} | "
+                     + "; ".join(f"{a:.2f} + {b:.2f}" for a, b in r["real"]) + " |")
+        print(lines[-1], flush=True)
+        (OUT / f"index_scale-{features.IVF_CODEC}-{ROWS}.md").write_text("\n".join(lines) + "\n")
+
+
 if __name__ == "__main__":
     if sys.argv[1:2] == ["--child"]:
         _child(*sys.argv[2:])
+    elif sys.argv[1:2] == ["scale"]:
+        scale_only([int(a) for a in sys.argv[2:]])
     else:
         main([int(a) for a in sys.argv[1:]] or [100, 1000, 10000])

@@ -9,6 +9,10 @@ stage, the innocents' candidates by stage, and seconds of the descriptor search 
 ``TRIAGE_SEARCH=ivf`` takes the IVF search alone.  Each suspect's triage is kept in
 ``triage_ivf.json``; ``python bench/triage_ivf.py topk`` applies every ``top_k`` from 1 to 6 to the IVF's
 triage and prints, per ``top_k``, where each leak's asset lands and the innocents' candidates by stage.
+``TRIAGE_CODEC=SQ8`` (any faiss scalar quantizer) sets the IVF's codes and keeps ``triage_ivf-SQ8.json``;
+``TRIAGE_KEYPOINTS=2000`` sets :data:`features.INDEX_KEYPOINTS` (assets' and suspects' descriptors) and keeps
+``triage_ivf-k2000.json`` (``-SQ8-k2000`` with both); ``python bench/triage_ivf.py codecs SQfp16 k2000``
+compares two such runs suspect by suspect.
 """
 
 from __future__ import annotations
@@ -22,6 +26,8 @@ from pathlib import Path
 
 for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_v, "1")
+
+import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -65,6 +71,8 @@ def main():
     from pipeline.io.pointcloud import read_points
     from pipeline.orchestrate.candidates import candidates, cascade
 
+    features.IVF_CODEC = os.environ.get("TRIAGE_CODEC", features.IVF_CODEC)
+    features.INDEX_KEYPOINTS = int(os.environ.get("TRIAGE_KEYPOINTS", features.INDEX_KEYPOINTS))
     cfg = load_config(None)
     gates = cascade_gates(cfg)
     top_k, margin = cfg["scan"]["top_k"], cfg["scan"]["shape_margin"]
@@ -92,7 +100,7 @@ def main():
                 "vote_rank": info["index_ranking"].index(asset) if asset in info["index_ranking"] else None}
         if n % 20 == 0:
             print(n, name, flush=True)
-    (WORK / "triage_ivf.json").write_text(json.dumps(out, default=float))
+    (WORK / _kept()).write_text(json.dumps(out, default=float))
     for label, res in out.items():
         own, stages, _ = _tally(res)
         secs = sorted(r["seconds"] for r in res.values())
@@ -104,6 +112,16 @@ def main():
     print("suspects whose candidates or stages differ:", len(differ))
     for n in differ:
         print(" ", n, truth[n], out["exact"][n]["stage"], out["ivf"][n]["stage"])
+
+
+def _kept():
+    """The triage's file: ``triage_ivf.json``, or ``triage_ivf-LABEL.json`` under ``TRIAGE_CODEC`` (the
+    label) and ``TRIAGE_KEYPOINTS`` (the label's ``-k`` part)."""
+    parts = [os.environ.get("TRIAGE_CODEC", "")]
+    if "TRIAGE_KEYPOINTS" in os.environ:
+        parts.append(f"k{os.environ['TRIAGE_KEYPOINTS']}")
+    label = "-".join(p for p in parts if p)
+    return f"triage_ivf-{label}.json" if label else "triage_ivf.json"
 
 
 def topk():
@@ -125,5 +143,32 @@ def topk():
               f"| {sum(stages.values()):.2f}, {stages.get('deep', 0.0):.2f} |  {' '.join(lost)}")
 
 
+def codecs(first, second):
+    """Two kept triages (labels of ``TRIAGE_CODEC`` / ``TRIAGE_KEYPOINTS`` runs, ``default`` for
+    ``triage_ivf.json``) side by side: every suspect's candidates and their stages,
+    each leak's own asset's place in the vote ranking, and the search's seconds."""
+    runs = [json.loads((WORK / (f"triage_ivf-{c}.json" if c != "default" else "triage_ivf.json")).read_text())["ivf"]
+            for c in (first, second)]
+    truth = json.loads((WORK / "truth.json").read_text())
+    for codec, res in zip((first, second), runs):
+        own, stages, lost = _tally(res)
+        secs = np.sort([r["seconds"] for r in res.values()])
+        print(f"{codec}: own asset's stage {dict(own)}, innocents' candidates by stage "
+              f"{ {k: round(v, 2) for k, v in stages.items()} }, search s median {np.median(secs):.2f}, "
+              f"95th pct {secs[int(0.95 * (len(secs) - 1))]:.2f}; not a candidate: {' '.join(lost)}")
+    differ = [n for n in sorted(truth) if runs[0][n]["stage"] != runs[1][n]["stage"]]
+    print(f"suspects whose candidates or stages differ: {len(differ)} of {len(truth)}")
+    for n in differ:
+        print(" ", n, truth[n][:2], runs[0][n]["stage"], runs[1][n]["stage"])
+    moved = [(n, runs[0][n]["vote_rank"], runs[1][n]["vote_rank"]) for n in sorted(truth)
+             if truth[n][0] == "leak" and runs[0][n]["vote_rank"] != runs[1][n]["vote_rank"]]
+    print(f"leaks whose asset moved in the vote ranking: {len(moved)}", *(f"{n} {a}->{b}" for n, a, b in moved))
+
+
 if __name__ == "__main__":
-    topk() if sys.argv[1:2] == ["topk"] else main()
+    if sys.argv[1:2] == ["topk"]:
+        topk()
+    elif sys.argv[1:2] == ["codecs"]:
+        codecs(*sys.argv[2:4])
+    else:
+        main()

@@ -69,7 +69,7 @@ def voxel_for(points, spacing, target=4000):
     return float(spacing * np.sqrt(max(len(points), 1) / target))
 
 
-def fpfh(points, voxel):
+def fpfh(points, voxel, *, most=None, rng=0):
     """Voxel-downsampled keypoints and their FPFH descriptors.
 
     Parameters
@@ -79,6 +79,13 @@ def fpfh(points, voxel):
         Downsampling voxel; normals are estimated within 2 voxels and FPFH
         within 5, so the descriptor of a scaled copy matches when ``voxel``
         is scaled with it.
+    most : int, optional
+        Keep at most this many keypoints, a seeded (``rng``) subsample of
+        them in their order: only theirs are described, from every
+        keypoint's neighbourhood, so each row is the one the whole set would
+        give it.
+    rng : int
+        Seed of that subsample.
 
     Returns
     -------
@@ -93,11 +100,18 @@ def fpfh(points, voxel):
     if len(down.points) < 5:
         return np.empty((0, 3)), np.empty((0, 33), dtype=np.float32)
     down.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=NORMAL_RADIUS, max_nn=30))
-    feat = o3d.pipelines.registration.compute_fpfh_feature(
-        down, o3d.geometry.KDTreeSearchParamHybrid(radius=FEATURE_RADIUS, max_nn=100))
+    keys = np.asarray(down.points) * voxel + origin
+    search = o3d.geometry.KDTreeSearchParamHybrid(radius=FEATURE_RADIUS, max_nn=100)
+    if most is not None and len(keys) > most:
+        # sorted: open3d returns the selected rows in ascending index order, whatever order they are given
+        pick = np.sort(np.random.default_rng(rng).choice(len(keys), most, replace=False))
+        feat = o3d.pipelines.registration.compute_fpfh_feature(down, search, pick.tolist())
+        keys = keys[pick]
+    else:
+        feat = o3d.pipelines.registration.compute_fpfh_feature(down, search)
     f = np.asarray(feat.data).T.astype(np.float32)
     f /= np.maximum(np.linalg.norm(f, axis=1, keepdims=True), 1e-12)
-    return np.asarray(down.points) * voxel + origin, f
+    return keys, f
 
 
 def match(query, reference, *, chunk=2048):
@@ -587,7 +601,7 @@ def register_global(suspect, original, *, spacing, iterations, target=4000, scal
 # ---------------------------------------------------------------------------
 
 INDEX_VOXEL = 4.0          # keypoint voxel, in median spacings of the cloud described
-INDEX_KEYPOINTS = 3000     # most keypoints kept per asset (and per suspect description)
+INDEX_KEYPOINTS = 2000     # most keypoints kept per asset (and per suspect description): 1.5 GB at 10,000 assets
 QUERY_SCALES = (1.0, 2**-0.5, 0.5, 2**0.5)   # suspect voxel factors (fewer points than issued: smaller)
 
 # Catalogues of more than a few assets: faiss IVF (:func:`train_ivf`).  bench/index_scale.py, one loaded
@@ -602,15 +616,17 @@ IVF_GRAPH_SEARCH = 64  # candidates the HNSW graph of the cells keeps while find
 IVF_CELL_ROWS = 1024  # most rows a cell holds on average, past sqrt(N) (a million rows): the search stays flat
 IVF_ITERATIONS = 10   # k-means iterations of the coarse quantizer
 IVF_SAMPLE = 64       # training rows per cell (a seeded subsample of larger sets)
+IVF_CODEC = "SQfp16"  # faiss codes of each row's residual from its cell's centroid
 FOLDED = 32           # coordinates an FPFH row is stored with (:func:`fold_fpfh`)
 _UNFOLD = np.concatenate([np.ones(11), np.zeros(11), -np.ones(10)]).astype(np.float32)   # bin 33 from the 32
 
 
-def describe(points, *, factor=1.0, max_keypoints=INDEX_KEYPOINTS, rng=0):
+def describe(points, *, factor=1.0, max_keypoints=None, rng=0):
     """FPFH keypoints of a cloud at ``INDEX_VOXEL * factor`` of its own median spacing.
 
     Outliers are dropped first (:func:`dense_part`), so the voxel follows the
-    surface's sampling; at most ``max_keypoints`` are kept (seeded subsample).
+    surface's sampling; at most ``max_keypoints`` (default :data:`INDEX_KEYPOINTS`) are kept (seeded
+    subsample).
 
     Returns
     -------
@@ -618,11 +634,8 @@ def describe(points, *, factor=1.0, max_keypoints=INDEX_KEYPOINTS, rng=0):
     features : (k, 33) float32, unit rows
     """
     dense = dense_part(np.asarray(points, dtype=np.float64))
-    keys, feats = fpfh(dense, INDEX_VOXEL * factor * median_spacing(dense))
-    if len(keys) > max_keypoints:
-        pick = np.sort(np.random.default_rng(rng).choice(len(keys), max_keypoints, replace=False))
-        keys, feats = keys[pick], feats[pick]
-    return keys, feats
+    return fpfh(dense, INDEX_VOXEL * factor * median_spacing(dense),
+                most=INDEX_KEYPOINTS if max_keypoints is None else max_keypoints, rng=rng)
 
 
 def geometry_hash(points, decimals=3):
@@ -886,9 +899,10 @@ class FeatureIndex:
         if self.shapes is None or len(self.shapes) == 0:
             return out
         cumulative, starts = self._cumulative_shapes()
-        for view in suspect_views(points):
-            d = cumulative_distance(d2_descriptor(view - view.mean(axis=0)), cumulative)
-            np.minimum.at(out, self.shape_owner[starts], np.minimum.reduceat(d, starts))
+        views = [d2_descriptor(view - view.mean(axis=0)) for view in suspect_views(points)]
+        if views:
+            least = np.minimum.reduceat(cumulative_distance(np.array(views), cumulative), starts, axis=1).min(axis=0)
+            np.minimum.at(out, self.shape_owner[starts], least)
         return out
 
     def _cumulative_shapes(self):
@@ -1235,15 +1249,16 @@ def ivf_cells(n_rows):
 def train_ivf(sample, n_rows, *, rng=0):
     """An empty faiss IVF for about ``n_rows`` descriptors, its coarse cells trained on ``sample``.
 
-    ``IndexIVFScalarQuantizer``, inner product, fp16 codes of each row's
-    residual from its cell's centroid, in :func:`fold_fpfh`'s 32
+    ``IndexIVFScalarQuantizer``, inner product, :data:`IVF_CODEC` (fp16)
+    codes of each row's residual from its cell's centroid, in :func:`fold_fpfh`'s 32
     coordinates: 64 bytes a row, 72 with faiss's id, 76 with the owner
-    (2.3 GB for 10,000 assets of 3,000 descriptors).  8-bit codes (SQ8,
-    1.3 GB) or PQ would fit in 2 GB but are too coarse for FPFH: a tenth
+    (1.5 GB for 10,000 assets of :data:`INDEX_KEYPOINTS` descriptors).  8-bit codes (SQ8,
+    44 bytes a row) or PQ are too coarse for FPFH: a tenth
     of a suspect's descriptors have a runner-up within 2e-4 of their
     nearest row's cosine, and on the real scans SQ8 found the exact nearest
     row for 82 % of a kitten crop's descriptors, PQ (11 x 8 bits) for 15 %,
-    fp16 for 99.5 % (``bench/index_scale.py``).  :func:`ivf_cells` cells,
+    fp16 for 99.5 % (``bench/index_scale.py``; on synthetic catalogues SQ8
+    found it for 47 % against 98 %, and searched no faster).  :func:`ivf_cells` cells,
     each query searched in its :data:`IVF_PROBE` nearest, found through an
     HNSW graph of the cells' centroids (32 links a node; at 30,000 cells
     a flat scan of them would cost as much as the rows).  Spherical k-means
@@ -1262,7 +1277,7 @@ def train_ivf(sample, n_rows, *, rng=0):
     """
     faiss = _faiss()
     cells = max(1, min(ivf_cells(n_rows), len(sample)))
-    ivf = faiss.index_factory(FOLDED, f"IVF{cells}_HNSW32,SQfp16", faiss.METRIC_INNER_PRODUCT)
+    ivf = faiss.index_factory(FOLDED, f"IVF{cells}_HNSW32,{IVF_CODEC}", faiss.METRIC_INNER_PRODUCT)
     ivf.cp.seed, ivf.cp.niter, ivf.cp.spherical = rng, IVF_ITERATIONS, True
     ivf.cp.max_points_per_centroid = IVF_SAMPLE
     with _one_thread(faiss):

@@ -175,6 +175,21 @@ def test_an_exact_resave_ranks_first_by_its_hash(models, index):
     assert ranked[0] == ("spot_cow_2930", float("inf"))
 
 
+def test_a_description_keeps_a_seeded_subset_of_at_most_index_keypoints_rows(models):
+    # the bunny at half the index voxel has about 15,000 keypoints: the index and a suspect keep the same 2,000
+    bunny = models["bunny_zipper_faceref_34834"]
+    keys, feats = features.describe(bunny, factor=0.5)
+    all_keys, all_feats = features.describe(bunny, factor=0.5, max_keypoints=10**9)
+    assert len(all_feats) > 3 * features.INDEX_KEYPOINTS
+    assert len(keys) == len(feats) == features.INDEX_KEYPOINTS
+    rows = {row.tobytes(): i for i, row in enumerate(all_keys)}
+    picked = [rows[row.tobytes()] for row in keys]           # every kept keypoint is one of the full set's
+    assert picked == sorted(set(picked))                     # in order, without repeats
+    assert np.array_equal(all_feats[picked], feats)
+    again_keys, again = features.describe(bunny, factor=0.5)
+    assert np.array_equal(again_keys, keys) and np.array_equal(again, feats)
+
+
 def test_past_a_million_rows_a_cell_holds_a_fixed_number_of_rows_and_cells_serve_four_times_their_rows():
     # sqrt(N) cells up to a million rows; beyond, IVF_CELL_ROWS rows a cell: a query reads as many rows at any size
     assert [features.ivf_cells(n) for n in (100_000, 2**20, 3_000_000, 30_000_000)] == [316, 1024, 2929, 29296]

@@ -76,25 +76,29 @@ def descriptor_distance(a, b):
     return cumulative_distance(a, np.cumsum(np.atleast_2d(b), axis=-1)).squeeze()
 
 
-def cumulative_distance(a, cumulative, *, chunk=65536):
+def cumulative_distance(a, cumulative, *, chunk=8192):
     """:func:`descriptor_distance` of ``a`` to rows given by their cumulative histograms (computed once).
 
     Parameters
     ----------
-    a : (bins,) float
+    a : (bins,) or (v, bins) float
+        One histogram, or several (a suspect's views): each chunk of rows is
+        read once for all of them.
     cumulative : (k, bins) float, ``np.cumsum(b, axis=-1)`` of the rows ``b``
     chunk : int
-        Rows at a time (keeps the temporaries in cache for a large catalogue's hundreds of thousands).
+        Rows at a time (a chunk stays in cache while every histogram of ``a`` is compared with it).
 
     Returns
     -------
-    (k,) float
+    (k,) or (v, k) float
     """
-    ca = np.cumsum(a)
-    out = np.empty(len(cumulative))
+    ca = np.cumsum(np.atleast_2d(a), axis=-1)
+    out = np.empty((len(ca), len(cumulative)))
     for lo in range(0, len(cumulative), chunk):
-        out[lo:lo + chunk] = np.abs(cumulative[lo:lo + chunk] - ca).sum(axis=-1)
-    return out
+        block = cumulative[lo:lo + chunk]
+        for i, row in enumerate(ca):
+            out[i, lo:lo + chunk] = np.abs(block - row).sum(axis=-1)
+    return out if np.ndim(a) == 2 else out[0]
 
 
 def sphere_directions(n):

@@ -185,10 +185,11 @@ def cascade(info, picked, deep_votes, deep_shape, quick_shape):
     return out
 
 
-INDEX_FORMAT = "v7"   # v2: inverted-file cells; v3: whole and cut shape views; v4: and the dense view;
+INDEX_FORMAT = "v8"   # v2: inverted-file cells; v3: whole and cut shape views; v4: and the dense view;
                       # v5: a faiss IVF instead of the inverted file, from features.IVF_MIN rows;
                       # v6: the IVF in its own file beside (.ivf), memory-mapped; each asset's file sha256;
-                      # v7: features.ivf_cells cells, found through an HNSW graph
+                      # v7: features.ivf_cells cells, found through an HNSW graph;
+                      # v8: at most 2,000 descriptors an asset and a suspect's description (was 3,000)
 
 
 def _loads(index_path):

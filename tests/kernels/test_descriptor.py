@@ -49,6 +49,10 @@ def test_distances_to_cumulative_rows_computed_once_equal_the_distances_to_the_r
     assert d.shape == (len(rows),)
     assert np.array_equal(d, cumulative_distance(a, cumulative)) and np.array_equal(d, descriptor_distance(a, rows))
     assert int(np.argmin(d)) == 123 and d[123] < 0.1 < np.median(d)
+    views = np.stack([a, rows[5], rows[77] * 0.5 + rows[78] * 0.5])     # several histograms: one pass, the same rows
+    many = cumulative_distance(views, cumulative, chunk=4096)
+    assert many.shape == (3, len(rows))
+    assert all(np.array_equal(many[i], descriptor_distance(v, rows)) for i, v in enumerate(views))
 
 
 def _d2_by_rows(points, pairs, seed=0):
