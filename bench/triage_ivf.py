@@ -12,7 +12,10 @@ triage and prints, per ``top_k``, where each leak's asset lands and the innocent
 ``TRIAGE_CODEC=SQ8`` (any faiss scalar quantizer) sets the IVF's codes and keeps ``triage_ivf-SQ8.json``;
 ``TRIAGE_KEYPOINTS=2000`` sets :data:`features.INDEX_KEYPOINTS` (assets' and suspects' descriptors) and keeps
 ``triage_ivf-k2000.json`` (``-SQ8-k2000`` with both); ``python bench/triage_ivf.py codecs SQfp16 k2000``
-compares two such runs suspect by suspect.
+compares two such runs suspect by suspect.  ``python bench/triage_ivf.py scales`` keeps each suspect's votes at
+every query scale apart (``triage_scales.json``); ``scales-summary`` then applies every set of scales.
+``scales sparse`` and ``scales-summary sparse`` do the same for thinned crops of every asset, which the leak
+benchmark lacks.
 """
 
 from __future__ import annotations
@@ -165,8 +168,116 @@ def codecs(first, second):
     print(f"leaks whose asset moved in the vote ranking: {len(moved)}", *(f"{n} {a}->{b}" for n, a, b in moved))
 
 
+def scales(sparse=False):
+    """Each suspect's votes at every query scale apart, and its seconds per scale (``triage_scales.json``):
+    the IVF index as :func:`main` builds it, the current :data:`features.INDEX_KEYPOINTS`.  ``sparse``:
+    the suspects are :func:`_sparse_crops` of the catalogue's assets instead (``triage_scales-sparse.json``)."""
+    import pyarrow.parquet as pq
+
+    from pipeline import features
+    from pipeline.config import cascade_gates, load_config
+    from pipeline.io.pointcloud import read_points
+
+    twin_shape = cascade_gates(load_config(None))[3]
+    rows = pq.read_table(WORK / "catalog.parquet").to_pylist()
+    clouds = {r["asset_key"]: read_points(Path(r["path"]) if Path(r["path"]).is_absolute() else WORK / r["path"]).points
+              for r in rows}
+    index = features.build_index(clouds, ivf=False).with_ivf()
+    index.prior = features.background_votes(index)
+    prior = index.prior
+    out = {"keys": index.keys, "twins": index.twins(index.keys, twin_shape), "suspects": {}}
+    truth = json.loads((WORK / "truth.json").read_text())
+    suspects = {name: WORK / "suspects" / f"{name}.ply" for name in truth}
+    if sparse:
+        suspects, truth = _sparse_crops(clouds)
+    for n, name in enumerate(sorted(truth)):
+        points = suspects[name] if sparse else read_points(suspects[name]).points
+        per = []
+        for factor in features.QUERY_SCALES:
+            t0 = time.perf_counter()
+            _, feats = features.describe(points, factor=factor)
+            votes = index.votes(feats) / len(feats) - prior if len(feats) else np.full(len(index.keys), -np.inf)
+            per.append({"factor": factor, "votes": votes.tolist(), "seconds": time.perf_counter() - t0})
+        shaped = index.shape_distances(points)
+        order = np.argsort(shaped, kind="stable")
+        out["suspects"][name] = {"per_scale": per, "exact": list(index.exact(points)),
+                                 "ranking": [index.keys[i] for i in order],
+                                 "distances": [float(shaped[i]) for i in order]}
+        if n % 20 == 0:
+            print(n, name, flush=True)
+    if sparse:
+        out["truth"] = truth
+    (WORK / ("triage_scales-sparse.json" if sparse else "triage_scales.json")).write_text(json.dumps(out, default=float))
+
+
+SPARSE_CHAINS = {"keep 25 %, crop 0.5": [("removal", 0.25), ("crop", 0.5), ("random_similarity", None)],
+                 "keep 10 %, crop 0.5": [("removal", 0.1), ("crop", 0.5), ("random_similarity", None)],
+                 "keep 25 %, crop 0.3": [("removal", 0.25), ("crop", 0.3), ("random_similarity", None)]}
+
+
+def _sparse_crops(clouds):
+    """Sparse crops of every asset (:data:`SPARSE_CHAINS`, seeded by the asset's place): the case the
+    leak benchmark lacks, a copy both thinned and cut.  Returns points and truth by name."""
+    from pipeline import surface
+
+    points, truth = {}, {}
+    for i, (key, cloud) in enumerate(sorted(clouds.items())):
+        for j, (label, chain) in enumerate(SPARSE_CHAINS.items()):
+            name = f"sparse-{i:03d}-{j}"
+            points[name] = surface.apply_chain(cloud, chain, rng=[38, i, j])
+            truth[name] = ["leak", key, label]
+    return points, truth
+
+
+def scales_summary(sparse=False):
+    """For every set of query scales: where each leak's asset lands, the innocents' candidates, and the
+    share of the search's seconds the set costs (from ``triage_scales.json``)."""
+    from itertools import combinations
+
+    from pipeline.config import cascade_gates, load_config
+    from pipeline.orchestrate.candidates import TWIN_LENDERS, candidates, cascade
+
+    cfg = load_config(None)
+    gates, top_k, margin = cascade_gates(cfg), cfg["scan"]["top_k"], cfg["scan"]["shape_margin"]
+    data = json.loads((WORK / ("triage_scales-sparse.json" if sparse else "triage_scales.json")).read_text())
+    truth = data["truth"] if sparse else json.loads((WORK / "truth.json").read_text())
+    keys = data["keys"]
+    n_scales = len(next(iter(data["suspects"].values()))["per_scale"])
+    total = sum(s["seconds"] for r in data["suspects"].values() for s in r["per_scale"])
+    print("| scales | leaks: own asset deep / quick / not a candidate | innocents: candidates, of them deep "
+          "| share of the search's seconds | leaks whose asset's stage differs from all four |")
+    print("|---|---|---|---:|---|")
+    full = None
+    for size in range(n_scales, 0, -1):
+        for chosen in combinations(range(n_scales), size):
+            res = {}
+            for name, r in data["suspects"].items():
+                votes = np.max([r["per_scale"][i]["votes"] for i in chosen], axis=0)
+                votes[[keys.index(k) for k in r["exact"]]] = np.inf      # an exact geometry hash comes first
+                order = np.argsort(-votes, kind="stable")
+                voted = [keys[i] for i in order]
+                info = {"ranking": r["ranking"], "distances": r["distances"], "index_ranking": voted,
+                        "index_votes": [float(votes[i]) for i in order],
+                        "twins": {k: data["twins"][k] for k in voted[:TWIN_LENDERS] if k in data["twins"]}}
+                picked = candidates(info, set(keys), top_k, margin)
+                res[name] = {"kind": truth[name][0], "asset": truth[name][1], "picked": picked,
+                             "stage": cascade(info, picked, *gates[:3])}
+            own, stages, lost = _tally(res)
+            full = full or res
+            moved = [n for n in res if truth[n][0] == "leak"
+                     and res[n]["stage"].get(truth[n][1]) != full[n]["stage"].get(truth[n][1])]
+            share = sum(r["per_scale"][i]["seconds"] for r in data["suspects"].values() for i in chosen) / total
+            factors = ", ".join(f"{data['suspects'][name]['per_scale'][i]['factor']:.3g}" for i in chosen)
+            print(f"| {factors} | {own['deep']} / {own['quick']} / {own['not a candidate']} "
+                  f"| {sum(stages.values()):.2f}, {stages.get('deep', 0.0):.2f} | {share:.2f} | {' '.join(moved)} |")
+
+
 if __name__ == "__main__":
-    if sys.argv[1:2] == ["topk"]:
+    if sys.argv[1:2] == ["scales"]:
+        scales(sparse=sys.argv[2:3] == ["sparse"])
+    elif sys.argv[1:2] == ["scales-summary"]:
+        scales_summary(sparse=sys.argv[2:3] == ["sparse"])
+    elif sys.argv[1:2] == ["topk"]:
         topk()
     elif sys.argv[1:2] == ["codecs"]:
         codecs(*sys.argv[2:4])

@@ -36,7 +36,7 @@ from .nearest import NearestTree
 
 __all__ = [
     "fpfh", "voxel_for", "match", "register_global", "GlobalResult",
-    "FeatureIndex", "build_index", "train_ivf", "fold_fpfh", "fold_queries", "nearest_exact", "geometry_hash", "harmonic", "best_overlap", "overlap_order", "overlap_of", "dense_part", "median_spacing", "scale_hint",
+    "FeatureIndex", "build_index", "describe", "describe_scales", "train_ivf", "fold_fpfh", "fold_queries", "nearest_exact", "geometry_hash", "harmonic", "best_overlap", "overlap_order", "overlap_of", "dense_part", "median_spacing", "scale_hint",
     "suspect_views", "dense_view", "polish",
 ]
 
@@ -633,9 +633,20 @@ def describe(points, *, factor=1.0, max_keypoints=None, rng=0):
     keypoints : (k, 3) float
     features : (k, 33) float32, unit rows
     """
+    return describe_scales(points, (factor,), max_keypoints=max_keypoints, rng=rng)[0]
+
+
+def describe_scales(points, factors=QUERY_SCALES, *, max_keypoints=None, rng=0):
+    """:func:`describe` at each voxel factor, the dense part and its spacing found once.
+
+    Returns
+    -------
+    list of (keypoints (k, 3) float, features (k, 33) float32), one per factor
+    """
     dense = dense_part(np.asarray(points, dtype=np.float64))
-    return fpfh(dense, INDEX_VOXEL * factor * median_spacing(dense),
-                most=INDEX_KEYPOINTS if max_keypoints is None else max_keypoints, rng=rng)
+    spacing = median_spacing(dense)
+    most = INDEX_KEYPOINTS if max_keypoints is None else max_keypoints
+    return [fpfh(dense, INDEX_VOXEL * factor * spacing, most=most, rng=rng) for factor in factors]
 
 
 def geometry_hash(points, decimals=3):
@@ -996,8 +1007,7 @@ class FeatureIndex:
         exact = set(self.exact(points))
         score = np.full(len(self.keys), -np.inf)
         prior = self.prior if self.prior is not None else np.zeros(len(self.keys))
-        for factor in QUERY_SCALES:
-            _, feats = describe(points, factor=factor)
+        for _, feats in describe_scales(points):
             if len(feats):
                 score = np.maximum(score, self.votes(feats) / len(feats) - prior)
         ranked = sorted(range(len(self.keys)), key=lambda i: (self.keys[i] not in exact, -score[i]))
@@ -1311,8 +1321,7 @@ def background_votes(index, n_points=20000, rng=0):
     share = np.zeros(len(index.keys))
     count = 0
     for points in scenes:
-        for factor in QUERY_SCALES:
-            _, feats = describe(points, factor=factor)
+        for _, feats in describe_scales(points):
             if len(feats):
                 share += index.votes(feats) / len(feats)
                 count += 1

@@ -188,6 +188,10 @@ def test_a_description_keeps_a_seeded_subset_of_at_most_index_keypoints_rows(mod
     assert np.array_equal(all_feats[picked], feats)
     again_keys, again = features.describe(bunny, factor=0.5)
     assert np.array_equal(again_keys, keys) and np.array_equal(again, feats)
+    # every query scale at once (the dense part found once) describes as each scale alone
+    for (k, f), factor in zip(features.describe_scales(bunny, (1.0, 0.5)), (1.0, 0.5)):
+        alone = features.describe(bunny, factor=factor)
+        assert np.array_equal(k, alone[0]) and np.array_equal(f, alone[1])
 
 
 def test_past_a_million_rows_a_cell_holds_a_fixed_number_of_rows_and_cells_serve_four_times_their_rows():
