@@ -264,10 +264,13 @@ def scales_summary(sparse=False):
                              "stage": cascade(info, picked, *gates[:3])}
             own, stages, lost = _tally(res)
             full = full or res
-            moved = [n for n in res if truth[n][0] == "leak"
-                     and res[n]["stage"].get(truth[n][1]) != full[n]["stage"].get(truth[n][1])]
+            def stage(r, asset):
+                return r["stage"].get(asset, "not a candidate") if asset in r["picked"] else "not a candidate"
+
+            moved = [n for n in res if truth[n][0] == "leak" and stage(res[n], truth[n][1]) != stage(full[n], truth[n][1])]
             share = sum(r["per_scale"][i]["seconds"] for r in data["suspects"].values() for i in chosen) / total
-            factors = ", ".join(f"{data['suspects'][name]['per_scale'][i]['factor']:.3g}" for i in chosen)
+            first = next(iter(data["suspects"].values()))
+            factors = ", ".join(f"{first['per_scale'][i]['factor']:.3g}" for i in chosen)
             print(f"| {factors} | {own['deep']} / {own['quick']} / {own['not a candidate']} "
                   f"| {sum(stages.values()):.2f}, {stages.get('deep', 0.0):.2f} | {share:.2f} | {' '.join(moved)} |")
 

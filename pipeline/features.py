@@ -636,8 +636,9 @@ def describe(points, *, factor=1.0, max_keypoints=None, rng=0):
     return describe_scales(points, (factor,), max_keypoints=max_keypoints, rng=rng)[0]
 
 
-def describe_scales(points, factors=QUERY_SCALES, *, max_keypoints=None, rng=0):
-    """:func:`describe` at each voxel factor, the dense part and its spacing found once.
+def describe_scales(points, factors=None, *, max_keypoints=None, rng=0):
+    """:func:`describe` at each voxel factor (default :data:`QUERY_SCALES`), the dense part and its
+    spacing found once.
 
     Returns
     -------
@@ -646,7 +647,8 @@ def describe_scales(points, factors=QUERY_SCALES, *, max_keypoints=None, rng=0):
     dense = dense_part(np.asarray(points, dtype=np.float64))
     spacing = median_spacing(dense)
     most = INDEX_KEYPOINTS if max_keypoints is None else max_keypoints
-    return [fpfh(dense, INDEX_VOXEL * factor * spacing, most=most, rng=rng) for factor in factors]
+    return [fpfh(dense, INDEX_VOXEL * factor * spacing, most=most, rng=rng)
+            for factor in (QUERY_SCALES if factors is None else factors)]
 
 
 def geometry_hash(points, decimals=3):
