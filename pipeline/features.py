@@ -912,10 +912,9 @@ class FeatureIndex:
         if self.shapes is None or len(self.shapes) == 0:
             return out
         cumulative, starts = self._cumulative_shapes()
-        views = [d2_descriptor(view - view.mean(axis=0)) for view in suspect_views(points)]
-        if views:
-            least = np.minimum.reduceat(cumulative_distance(np.array(views), cumulative), starts, axis=1).min(axis=0)
-            np.minimum.at(out, self.shape_owner[starts], least)
+        views = np.array([d2_descriptor(view - view.mean(axis=0)) for view in suspect_views(points)])   # never empty
+        least = np.minimum.reduceat(cumulative_distance(views, cumulative).min(axis=0), starts)
+        np.minimum.at(out, self.shape_owner[starts], least)
         return out
 
     def _cumulative_shapes(self):
