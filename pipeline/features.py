@@ -448,7 +448,8 @@ def register_search(suspect, original, *, spacing, rotations, poses, icp_points=
 
     chosen = final(best)
     if others is not None:
-        alike = registration.poses_alike(probe, ref.tree, ref.sample[:1000], chosen, [q[1] for q in quick], spacing)
+        alike = registration.poses_alike(probe, ref.tree, ref.sample[:1000], chosen, [q[1] for q in quick], spacing,
+                                         ref.normals)
         others.extend(registration.distinct_poses(probe, chosen, [final(pose) for pose in alike], spacing))
     return chosen
 

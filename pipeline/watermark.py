@@ -942,7 +942,8 @@ def register(suspect, reference, spacing, detect_params, tree, normals=None, *, 
     # point-to-point ICP slides slowly along smooth surfaces: finish on the tangent planes
     found = features.polish(suspect, reference, best, spacing=spacing, normals=normals)
     if search and poses is not None and searched is not None:
-        poses.extend(registration.poses_alike(suspect, tree, _coverage_sample(reference), found, others, spacing))
+        poses.extend(registration.poses_alike(suspect, tree, _coverage_sample(reference), found, others, spacing,
+                                              normals))
     if poses is not None:
         _add_turns(poses, suspect, reference, found, spacing, tree, normals)
     times["deep"] = time.perf_counter() - t1
@@ -966,13 +967,12 @@ def _turned_poses(suspect, reference, found, spacing, tree, normals=None, most=1
     wide, and the principal axis of a scan can lie degrees off the axis);
     those that fit about as well (:func:`registration.poses_alike`) are
     refined on all.  Empty for an original without such an axis, and where
-    ``found`` puts less than :data:`registration.POSES_FIT` of the suspect on it.
+    ``found`` does not lay the suspect on it (:func:`registration.lies_on`).
     """
     sub = suspect[:: max(1, len(suspect) // most)]
     sample = _coverage_sample(reference)
     starts = registration.axis_turns(reference, found)
-    if not starts or registration.overlap(registration.apply(found, sub), tree, sample,
-                                          3.0 * spacing)[0] < registration.POSES_FIT:
+    if not starts or not registration.lies_on(sub, tree, found, spacing, normals):
         return []
     anchor, direction, _ = _revolution_axis(reference, normals)
     starts += registration.fine_turns(sub, tree, found, anchor, direction, bound=3.0 * spacing)
@@ -981,7 +981,7 @@ def _turned_poses(suspect, reference, found, spacing, tree, normals=None, most=1
         return registration.refine_part(points, tree, reference, start, spacing=spacing, widths=POLISH_WIDTHS,
                                         iterations=POLISH_ITERATIONS)
 
-    alike = registration.poses_alike(sub, tree, sample, found, [refined(sub, s) for s in starts], spacing)
+    alike = registration.poses_alike(sub, tree, sample, found, [refined(sub, s) for s in starts], spacing, normals)
     return registration.distinct_poses(suspect, found, [refined(suspect, p) for p in alike], spacing)
 
 
@@ -1009,7 +1009,7 @@ def _add_turns(poses, suspect, reference, found, spacing, tree, normals=None):
     turned = _turned_poses(suspect, reference, found, spacing, tree, normals)
     if turned:
         poses[:] = registration.poses_alike(suspect, tree, _coverage_sample(reference), found, [*poses, *turned],
-                                            spacing)
+                                            spacing, normals)
 
 
 REVOLUTION_STARTS = 8     # coarse poses of :func:`revolution.revolution_poses` refined by ICP

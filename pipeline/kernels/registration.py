@@ -35,6 +35,7 @@ __all__ = [
     "Similarity", "apply", "umeyama", "principal_frame", "register_covariance", "symmetry_axes", "fine_turns",
     "icp_similarity", "register_robust", "umeyama_batch", "ransac_similarity", "overlap",
     "refine_part", "refine_plane", "rotation_search", "connected_parts", "separate_objects", "shape_signature",
+    "poses_alike", "lies_on", "roughness", "distinct_poses",
 ]
 
 MAX_STEP = 0.5   # refine_plane: largest scale change and rotation (rad) of one linearised step
@@ -647,7 +648,8 @@ def rotation_search(suspect, original, scale, *, rotations=1000, grid=64, top=12
     return [(s, Similarity(r, float(scale), t)) for s, r, t in found[:top]]
 
 
-POSES_FIT = 0.5           # other poses are sought only where this share of the suspect lies on the original
+POSES_FIT = 0.5           # other poses are sought only where this share of the suspect lies on the original,
+POSES_CLOSE = 1.0         # and its RMS distance there, beyond its own roughness, is at most this (spacings)
 POSE_FITNESS_TIE = 0.1     # another pose fits as well: fitness at most this below the chosen pose's,
 POSE_RESIDUAL_TIE = 1.25   # and residual at most this times its residual
 POSE_APART = 3.0           # spacings: poses whose points lie closer than this (mean) are the same pose
@@ -661,7 +663,7 @@ TURN_APART = 3.0          # degrees at least between them
 TURN_POINTS = 500         # most suspect points it scores (the dip shows alike on 600 as on 2,400)
 
 
-def poses_alike(points, tree, sample, chosen, poses, spacing):
+def poses_alike(points, tree, sample, chosen, poses, spacing, normals=None):
     """Those of ``poses`` that fit ``points`` about as well as ``chosen``, distinct, tightest first.
 
     A part of a near-symmetric shape, or a whole copy turned about its
@@ -679,6 +681,8 @@ def poses_alike(points, tree, sample, chosen, poses, spacing):
     poses : sequence of Similarity
     spacing : float
         Median nearest-neighbour distance of the original.
+    normals : (m, 3) float, optional
+        Unit normals of the original, for :func:`lies_on`.
 
     Returns
     -------
@@ -686,20 +690,85 @@ def poses_alike(points, tree, sample, chosen, poses, spacing):
         Fitness (within 3 spacings) at most :data:`POSE_FITNESS_TIE` below
         the chosen pose's, residual at most :data:`POSE_RESIDUAL_TIE` times
         its own, each :data:`POSE_APART` apart from the chosen pose and the
-        others; at most :data:`MAX_POSES`.  Empty where the chosen pose puts
-        less than :data:`POSES_FIT` of ``points`` on the original (a suspect
-        that is not this original fits nowhere, at many poses alike).
+        others; at most :data:`MAX_POSES`.  Empty where the chosen pose does
+        not lay ``points`` on the original (:func:`lies_on`): a suspect that
+        is not this original fits nowhere, at many poses alike.
     """
     def fit(pose):
         f, _, r = overlap(apply(pose, points), tree, sample, 3.0 * spacing)
         return f, r
 
-    f0, r0 = fit(chosen)
-    if f0 < POSES_FIT:
+    if not lies_on(points, tree, chosen, spacing, normals):
         return []
+    f0, r0 = fit(chosen)
     order = sorted((r, i) for i, (f, r) in enumerate(map(fit, poses))
                    if f >= f0 - POSE_FITNESS_TIE and r <= POSE_RESIDUAL_TIE * max(r0, 1e-3 * spacing))
     return distinct_poses(points, chosen, [poses[i] for _, i in order], spacing)
+
+
+def lies_on(points, tree, pose, spacing, normals=None):
+    """Whether ``pose`` lays the suspect on the original, closely enough to look for other poses alike.
+
+    At least :data:`POSES_FIT` of ``points`` within 3 spacings of an
+    original point, and, with the original's ``normals``, the RMS distance of
+    those points to the tangent plane at their nearest original point, less
+    the suspect's own :func:`roughness` in quadrature (a noisy copy lies no
+    closer than its noise), at most :data:`POSES_CLOSE` spacings.  A shape
+    that is not this original fits nowhere, at many poses alike, its points
+    spread through the band about the surface (an even spread gives 1.7
+    spacings); a copy, cropped, noisy or resampled, lies on the surface.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+        The suspect (or a subsample), in its own coordinates.
+    tree : cKDTree (or any tree with its ``query`` and ``data``)
+        Over the original points.
+    pose : Similarity
+    spacing : float
+        Median nearest-neighbour distance of the original.
+    normals : (m, 3) float, optional
+        Unit normals of the original; without them only the share is tested.
+
+    Returns
+    -------
+    bool
+    """
+    aligned = apply(pose, points)
+    dist, idx = tree.query(aligned, distance_upper_bound=3.0 * spacing)
+    inside = dist < 3.0 * spacing
+    if not len(aligned) or inside.mean() < POSES_FIT:
+        return False
+    if normals is None:
+        return True
+    off = np.einsum("ki,ki->k", aligned[inside] - tree.data[idx[inside]], normals[idx[inside]])
+    return float(np.mean(off ** 2)) - roughness(aligned) ** 2 <= (POSES_CLOSE * spacing) ** 2
+
+
+def roughness(points, k=16, most=1500):
+    """Median RMS distance of a point set's neighbourhoods from their own least-squares planes.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+    k : int
+        Neighbours of each point (itself included).
+    most : int
+        At most this many neighbourhoods, evenly strided.
+
+    Returns
+    -------
+    float
+        0 for fewer than 4 points.
+    """
+    if len(points) < 4:
+        return 0.0
+    k = min(k, len(points))
+    _, idx = cKDTree(points).query(points[:: max(1, len(points) // most)], k=k)
+    nbrs = points[idx]
+    centred = nbrs - nbrs.mean(axis=1, keepdims=True)
+    least = np.linalg.eigvalsh(np.einsum("nki,nkj->nij", centred, centred))[:, 0]
+    return float(np.sqrt(np.median(np.maximum(least, 0.0)) / max(k - 3, 1)))
 
 
 def distinct_poses(points, chosen, poses, spacing):
