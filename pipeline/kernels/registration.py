@@ -673,7 +673,7 @@ def poses_alike(points, tree, sample, chosen, poses, spacing, normals=None):
     ----------
     points : (n, 3) float
         The suspect (or a subsample).
-    tree : cKDTree
+    tree : cKDTree (or any tree with its ``query``, and ``data`` where ``normals`` are given)
         Over the original points.
     sample : (k, 3) float
         Original points at which coverage is measured.
@@ -682,7 +682,7 @@ def poses_alike(points, tree, sample, chosen, poses, spacing, normals=None):
     spacing : float
         Median nearest-neighbour distance of the original.
     normals : (m, 3) float, optional
-        Unit normals of the original, for :func:`lies_on`.
+        Unit normals of the original, row for row with ``tree.data``, for :func:`lies_on`.
 
     Returns
     -------
@@ -712,8 +712,10 @@ def lies_on(points, tree, pose, spacing, normals=None):
     At least :data:`POSES_FIT` of ``points`` within 3 spacings of an
     original point, and, with the original's ``normals``, the RMS distance of
     those points to the tangent plane at their nearest original point, less
-    the suspect's own :func:`roughness` in quadrature (a noisy copy lies no
-    closer than its noise), at most :data:`POSES_CLOSE` spacings.  A shape
+    the :func:`roughness` of the suspect and of the original in quadrature,
+    at most :data:`POSES_CLOSE` spacings: a noisy copy lies no closer than
+    its noise, and a copy resampled from a rough scan lies at the scan's
+    roughness from the tangent planes of its points.  A shape
     that is not this original fits nowhere, at many poses alike, its points
     spread through the band about the surface (an even spread gives 1.7
     spacings); a copy, cropped, noisy or resampled, lies on the surface.
@@ -728,7 +730,8 @@ def lies_on(points, tree, pose, spacing, normals=None):
     spacing : float
         Median nearest-neighbour distance of the original.
     normals : (m, 3) float, optional
-        Unit normals of the original; without them only the share is tested.
+        Unit normals of the original, row for row with ``tree.data``;
+        without them only the share is tested.
 
     Returns
     -------
@@ -742,7 +745,9 @@ def lies_on(points, tree, pose, spacing, normals=None):
     if normals is None:
         return True
     off = np.einsum("ki,ki->k", aligned[inside] - tree.data[idx[inside]], normals[idx[inside]])
-    return float(np.mean(off ** 2)) - roughness(aligned) ** 2 <= (POSES_CLOSE * spacing) ** 2
+    # the roughness of all its points: outliers only make it rougher, and let more poses be read
+    allowed = roughness(aligned) ** 2 + roughness(tree.data) ** 2
+    return float(np.mean(off ** 2)) - allowed <= (POSES_CLOSE * spacing) ** 2
 
 
 def roughness(points, k=16, most=1500):
@@ -754,7 +759,7 @@ def roughness(points, k=16, most=1500):
     k : int
         Neighbours of each point (itself included).
     most : int
-        At most this many neighbourhoods, evenly strided.
+        About this many neighbourhoods (fewer than twice as many), evenly strided.
 
     Returns
     -------
