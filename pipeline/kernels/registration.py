@@ -649,7 +649,7 @@ def rotation_search(suspect, original, scale, *, rotations=1000, grid=64, top=12
 
 
 POSES_FIT = 0.5           # other poses are sought only where this share of the suspect lies on the original,
-POSES_CLOSE = 1.0         # and its RMS distance there, beyond its own roughness, is at most this (spacings)
+POSES_CLOSE = 1.0         # and its RMS distance there, beyond its and the original's roughness, at most this (spacings)
 POSE_FITNESS_TIE = 0.1     # another pose fits as well: fitness at most this below the chosen pose's,
 POSE_RESIDUAL_TIE = 1.25   # and residual at most this times its residual
 POSE_APART = 3.0           # spacings: poses whose points lie closer than this (mean) are the same pose
@@ -715,10 +715,10 @@ def lies_on(points, tree, pose, spacing, normals=None):
     the :func:`roughness` of the suspect and of the original in quadrature,
     at most :data:`POSES_CLOSE` spacings: a noisy copy lies no closer than
     its noise, and a copy resampled from a rough scan lies at the scan's
-    roughness from the tangent planes of its points.  A shape
-    that is not this original fits nowhere, at many poses alike, its points
-    spread through the band about the surface (an even spread gives 1.7
-    spacings); a copy, cropped, noisy or resampled, lies on the surface.
+    roughness from the tangent planes of its points.  A shape that is not
+    this original fits nowhere, at many poses alike, its points spread
+    through the band about the surface (an even spread gives 1.7 spacings);
+    a copy, cropped, noisy or resampled, lies on the surface.
 
     Parameters
     ----------
@@ -746,11 +746,11 @@ def lies_on(points, tree, pose, spacing, normals=None):
         return True
     off = np.einsum("ki,ki->k", aligned[inside] - tree.data[idx[inside]], normals[idx[inside]])
     # the roughness of all its points: outliers only make it rougher, and let more poses be read
-    allowed = roughness(aligned) ** 2 + roughness(tree.data) ** 2
+    allowed = roughness(aligned) ** 2 + roughness(tree.data, tree=tree) ** 2
     return float(np.mean(off ** 2)) - allowed <= (POSES_CLOSE * spacing) ** 2
 
 
-def roughness(points, k=16, most=1500):
+def roughness(points, k=16, most=1500, tree=None):
     """Median RMS distance of a point set's neighbourhoods from their own least-squares planes.
 
     Parameters
@@ -760,6 +760,8 @@ def roughness(points, k=16, most=1500):
         Neighbours of each point (itself included).
     most : int
         About this many neighbourhoods (fewer than twice as many), evenly strided.
+    tree : cKDTree (or any tree with its ``query``) over ``points``, optional
+        Built here when not given.
 
     Returns
     -------
@@ -769,7 +771,7 @@ def roughness(points, k=16, most=1500):
     if len(points) < 4:
         return 0.0
     k = min(k, len(points))
-    _, idx = cKDTree(points).query(points[:: max(1, len(points) // most)], k=k)
+    _, idx = (tree or cKDTree(points)).query(points[:: max(1, len(points) // most)], k=k)
     nbrs = points[idx]
     centred = nbrs - nbrs.mean(axis=1, keepdims=True)
     least = np.linalg.eigvalsh(np.einsum("nki,nkj->nij", centred, centred))[:, 0]

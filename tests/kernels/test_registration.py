@@ -284,6 +284,10 @@ def test_lies_on_tells_a_copy_noisy_or_resampled_from_a_shape_spread_through_the
         assert registration.lies_on(suspect / 2.0, tree, registration.Similarity(np.eye(3), 2.0, np.zeros(3)),
                                     spacing, normals) is lies
     assert registration.roughness(noisy) > 0.5 * spacing > 10 * registration.roughness(part)
+    # the original's roughness from the registration's own tree (pykdtree): the same neighbourhoods
+    from pipeline.nearest import NearestTree
+
+    assert registration.roughness(tube, tree=NearestTree(tube)) == registration.roughness(tube) > 0.0
     # the noisy copy lies on it only because its own roughness is allowed for
     off = np.linalg.norm(noisy, axis=1) - 20.0
     assert np.sqrt(np.mean(off ** 2)) > registration.POSES_CLOSE * spacing
