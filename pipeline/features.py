@@ -799,7 +799,7 @@ class FeatureIndex:
         _add_rows(ivf, self.features)
         return replace(self, features=None, ivf=ivf)
 
-    def nearest(self, queries, k, *, probe=IVF_PROBE):
+    def nearest(self, queries, k, *, probe=IVF_PROBE, without=None):
         """The ``k`` most similar index rows of each query row: exact, or through ``ivf``.
 
         Parameters
@@ -808,16 +808,35 @@ class FeatureIndex:
         k : int
         probe : int
             Cells of ``ivf`` searched per query.
+        without : str, optional
+            An asset key whose rows are left out of the search.
 
         Returns
         -------
         top : (c, k) int, most similar first; -1 where the IVF's probed cells hold fewer than k rows
         similarity : (c, k) float, -inf where ``top`` is -1
         """
+        rows = None if without is None else np.flatnonzero(self.owner == self.keys.index(without))
         if self.ivf is None:
-            return nearest_exact(queries, self.features, k)
+            if rows is None:
+                return nearest_exact(queries, self.features, k)
+            kept = np.setdiff1d(np.arange(self.n_rows), rows)
+            if len(kept) == 0:
+                return np.full((len(queries), k), -1), np.full((len(queries), k), -np.inf)
+            top, val = nearest_exact(queries, self.features[kept], min(k, len(kept)))
+            pad = k - top.shape[1]
+            return (np.pad(kept[top], ((0, 0), (0, pad)), constant_values=-1),
+                    np.pad(val, ((0, 0), (0, pad)), constant_values=-np.inf))
         faiss = _faiss()
-        val, top = self.ivf.search(fold_queries(queries), k, params=faiss.SearchParametersIVF(nprobe=probe))
+        if rows is None or not len(rows):
+            params = faiss.SearchParametersIVF(nprobe=probe)
+        else:
+            # an asset's rows are added together (FeatureIndex.add): one range of faiss ids
+            assert rows[-1] - rows[0] + 1 == len(rows), "an asset's index rows are not contiguous"
+            inside = faiss.IDSelectorRange(int(rows[0]), int(rows[-1]) + 1)
+            outside = faiss.IDSelectorNot(inside)             # both kept alive through the search
+            params = faiss.SearchParametersIVF(nprobe=probe, sel=outside)
+        val, top = self.ivf.search(fold_queries(queries), k, params=params)
         return top, np.where(top >= 0, val, -np.inf)
 
     def add(self, keys, descriptors, hashes, shapes=None):
@@ -896,7 +915,7 @@ class FeatureIndex:
             self.features, self.ivf = trained.features, trained.ivf
         self.prior = background_votes(self)
 
-    def shape_distances(self, points):
+    def shape_distances(self, points, whole=False):
         """Per asset, the least D2 distance between any view of the suspect and any of the asset.
 
         The suspect's views (:func:`suspect_views`) are its points, its dense
@@ -905,18 +924,29 @@ class FeatureIndex:
         too), an asset among other objects and a crop are each compared with
         what they derive from.
 
+        Parameters
+        ----------
+        points : (n, 3) float
+        whole : bool
+            Also return the least distance to each asset's whole view alone.
+
         Returns
         -------
-        (n_assets,) float, inf for an asset with no shape views
+        (n_assets,) float, inf for an asset with no shape views; with
+        ``whole``, a pair of such arrays (any view, the whole view)
         """
-        out = np.full(len(self.keys), np.inf)
+        out, out_whole = np.full(len(self.keys), np.inf), np.full(len(self.keys), np.inf)
         if self.shapes is None or len(self.shapes) == 0:
-            return out
+            return (out, out_whole) if whole else out
         cumulative, starts = self._cumulative_shapes()
         views = np.array([d2_descriptor(view - view.mean(axis=0)) for view in suspect_views(points)])   # never empty
-        least = np.minimum.reduceat(cumulative_distance(views, cumulative).min(axis=0), starts)
-        np.minimum.at(out, self.shape_owner[starts], least)
-        return out
+        dist = cumulative_distance(views, cumulative).min(axis=0)
+        np.minimum.at(out, self.shape_owner[starts], np.minimum.reduceat(dist, starts))
+        if not whole:
+            return out
+        owners, first = np.unique(self.shape_owner, return_index=True)   # an asset's whole view comes first
+        out_whole[owners] = dist[first]
+        return out, out_whole
 
     def _cumulative_shapes(self):
         """``shapes``' cumulative histograms and where each run of one owner's rows starts, kept while
@@ -963,13 +993,14 @@ class FeatureIndex:
         h = geometry_hash(points)
         return [k for k, other in zip(self.keys, self.hashes) if other == h]
 
-    def votes(self, features, *, ratio=0.9, chunk=1024, neighbours=8, probe=IVF_PROBE):
+    def votes(self, features, *, ratio=0.9, chunk=1024, neighbours=8, probe=IVF_PROBE, without=None):
         """Votes per asset of one set of suspect descriptors.
 
         Each descriptor votes for the asset of its nearest index descriptor
         when that is clearly nearer than the nearest descriptor of any
         other asset (Lowe's ratio test across assets: ``d1 < ratio * d_other``
         among the ``neighbours`` nearest; ``probe`` cells searched through an IVF).
+        ``without``: an asset key left out, as if it were not indexed.
 
         Returns
         -------
@@ -980,7 +1011,7 @@ class FeatureIndex:
             return out
         neighbours = min(neighbours, self.n_rows)
         for lo in range(0, len(features), chunk):
-            top, val = self.nearest(features[lo:lo + chunk], neighbours, probe=probe)
+            top, val = self.nearest(features[lo:lo + chunk], neighbours, probe=probe, without=without)
             dist = np.sqrt(np.maximum(2.0 - 2.0 * val, 0.0))            # inf where no row was found
             owners = np.where(top >= 0, self.owner[top], -1)
             other = owners != owners[:, :1]
@@ -989,7 +1020,7 @@ class FeatureIndex:
             np.add.at(out, owners[ok, 0], 1.0)
         return out
 
-    def rank(self, points, top_k):
+    def rank(self, points, top_k, without=None):
         """The ``top_k`` assets a suspect most likely derives from.
 
         An exact geometry hash puts its asset first.  Otherwise the suspect
@@ -1001,17 +1032,26 @@ class FeatureIndex:
         ----------
         points : (n, 3) float
         top_k : int
+        without : str, optional
+            An asset key left out, as if it were not indexed: the votes that
+            asset split with others of the same surface go to them, and so
+            does its background share (it is ranked last, at -inf).
 
         Returns
         -------
         list of (asset_key, votes) ; votes is a share of the suspect's descriptors (inf for an exact hash)
         """
-        exact = set(self.exact(points))
+        without = without if without in self.keys else None
+        exact = set(self.exact(points)) - {without}
         score = np.full(len(self.keys), -np.inf)
         prior = self.prior if self.prior is not None else np.zeros(len(self.keys))
+        if without is not None and self.prior is not None:
+            prior = background_votes(self, without=without)     # its background share goes to others too
         for _, feats in describe_scales(points):
             if len(feats):
-                score = np.maximum(score, self.votes(feats) / len(feats) - prior)
+                score = np.maximum(score, self.votes(feats, without=without) / len(feats) - prior)
+        if without is not None:
+            score[self.keys.index(without)] = -np.inf
         ranked = sorted(range(len(self.keys)), key=lambda i: (self.keys[i] not in exact, -score[i]))
         return [(self.keys[i], float("inf") if self.keys[i] in exact else float(score[i]))
                 for i in ranked[:top_k]]
@@ -1304,27 +1344,35 @@ def _add_rows(ivf, features, chunk=1_000_000):
         ivf.add(fold_fpfh(features[lo:lo + chunk]))
 
 
-def background_votes(index, n_points=20000, rng=0):
+def background_votes(index, n_points=20000, rng=0, without=None):
     """Share of votes each asset draws from unrelated, seeded background geometry.
 
     The background is the procedural clutter of :func:`attacks.clutter`
     (blobs, boxes, cylinders) and uniform junk in a box, described at every
-    query scale.
+    query scale (once per process).  ``without``: an asset key left out
+    (:meth:`FeatureIndex.votes`).
 
     Returns
     -------
     (n_assets,) float
     """
-    from .kernels import attacks
-
-    gen = np.random.default_rng(rng)
-    scenes = [attacks.clutter(gen.normal(size=(10, 3)), n_points / 10.0, gen),
-              gen.uniform(-1.0, 1.0, (n_points // 4, 3))]
     share = np.zeros(len(index.keys))
-    count = 0
-    for points in scenes:
-        for _, feats in describe_scales(points):
-            if len(feats):
-                share += index.votes(feats) / len(feats)
-                count += 1
-    return share / max(count, 1)
+    described = _background(n_points, rng)
+    for feats in described:
+        share += index.votes(feats, without=without) / len(feats)
+    return share / max(len(described), 1)
+
+
+_BACKGROUND: "dict[tuple, list]" = {}     # (n_points, rng) -> the background's descriptors at every scale
+
+
+def _background(n_points, rng):
+    if (n_points, rng) not in _BACKGROUND:
+        from .kernels import attacks
+
+        gen = np.random.default_rng(rng)
+        scenes = [attacks.clutter(gen.normal(size=(10, 3)), n_points / 10.0, gen),
+                  gen.uniform(-1.0, 1.0, (n_points // 4, 3))]
+        _BACKGROUND[(n_points, rng)] = [feats for points in scenes for _, feats in describe_scales(points)
+                                        if len(feats)]
+    return _BACKGROUND[(n_points, rng)]

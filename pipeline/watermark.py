@@ -29,7 +29,7 @@ __all__ = [
     "fingerprint_displacement", "cluster_amplitude", "budget_share",
     "capped", "mark_reach", "cluster_fingerprint", "check_count", "check_digest",
     "fingerprint_observation", "ReferenceMismatch", "params_record", "params_from_record", "ADDED_LATER",
-    "band_for", "band_applies",
+    "band_for", "band_applies", "laid_whole",
 ]
 
 
@@ -708,23 +708,66 @@ def estimate_differences(suspect, reference, specs, bases, detect_params, params
         raise
     t1 = time.perf_counter()
 
-    def at(pose):
+    def at(pose, chosen=False):
         aligned = registration.apply(pose, suspect)
         fitness, coverage, _ = registration.overlap(aligned, tree, _coverage_sample(reference),
                                                     3.0 * float(np.median(spacing)))
         deltas, support = _coefficient_differences(aligned, reference, specs, bases, detect_params, params,
                                                    normals, grams, spacing)
-        return {"deltas": deltas, "support": support,
-                "registration": _registration_record(pose, fitness, coverage, reference, detect_params)}
+        record = _registration_record(pose, fitness, coverage, reference, detect_params)
+        if chosen:
+            record["whole"] = laid_whole(suspect, tree, pose, float(np.median(spacing)), coverage, normals)
+        return {"deltas": deltas, "support": support, "registration": record}
 
     return {
         "seconds_registration": t1 - t0,
         "seconds_quick": t1 - t0 - times["deep"],
         "seconds_deep": times["deep"],
-        **at(transform),
+        **at(transform, chosen=True),
         "other_poses": [at(pose) for pose in others],
         "seconds_estimate": time.perf_counter() - t1,
     }
+
+
+WHOLE_OFF = 16        # most suspect points beyond 3 spacings of the original for a copy laid on it whole
+WHOLE_COVERAGE = 0.8  # least share of the original covered by such a copy
+LIES_ON_POINTS = 1500  # suspect points its distance to the surface is measured on
+
+
+def laid_whole(suspect, tree, pose, spacing, coverage, normals=None):
+    """Whether ``pose`` lays the whole suspect on the original, and it covers the original: the suspect is
+    a copy of it whole (an unmarked original, a copy under another key) with nothing else beside it.
+
+    At most :data:`WHOLE_OFF` suspect points lie beyond 3 spacings of the
+    original, ``coverage`` is at least :data:`WHOLE_COVERAGE`, and the
+    suspect lies on the surface, not merely near it
+    (:func:`registration.lies_on`, which needs the original's normals:
+    without them, False).  A scan then checks the other candidates only
+    where they may hold that surface
+    (:func:`pipeline.orchestrate.candidates.after_whole`).
+
+    Parameters
+    ----------
+    suspect : (n, 3) float
+    tree : NearestTree of the original (m, 3)
+    pose : registration.Similarity
+    spacing : float
+        Median nearest-neighbour distance of the original.
+    coverage : float
+        Share of the original within 3 spacings of the posed suspect.
+    normals : (m, 3) float, optional
+
+    Returns
+    -------
+    bool
+    """
+    if coverage < WHOLE_COVERAGE or normals is None:
+        return False
+    dist, _ = tree.query(registration.apply(pose, suspect), distance_upper_bound=3.0 * spacing)
+    if int((dist >= 3.0 * spacing).sum()) > WHOLE_OFF:
+        return False
+    sub = suspect[:: max(1, len(suspect) // LIES_ON_POINTS)]
+    return bool(registration.lies_on(sub, tree, pose, spacing, normals))
 
 
 def _registration_record(transform, fitness, coverage, reference, detect_params):

@@ -532,3 +532,29 @@ def test_feature_matching_keeps_the_first_greatest_product_both_ways_across_chun
         forward, back = features.match(query, reference, chunk=chunk)
         np.testing.assert_array_equal(forward, sim.argmax(axis=1))
         np.testing.assert_array_equal(back, sim.argmax(axis=0))
+
+
+def test_an_asset_left_out_of_the_index_draws_no_votes_and_an_asset_holding_its_surface_draws_them():
+    # a scene and a blob sold apart, the blob cut from the scene's own points: a copy of the blob
+    # splits its votes between the two (the ratio test); with the blob left out, the scene draws them
+    blob = demo.procedural_shape("blob", 3000, seed=5) * 10
+    scene = np.vstack([blob, demo.procedural_shape("torus", 3000, seed=6) * 10 + [40.0, 0.0, 0.0]])
+    clouds = {"blob": blob, "scene": scene, "shell": demo.procedural_shape("shell", 3000, seed=7) * 10,
+              "terrain": demo.procedural_shape("terrain", 3000, seed=8) * 10}
+    index = features.build_index(clouds, ivf=False)
+    copy = attacks.apply_chain(blob, [("random_similarity", None), ("shuffle", None)], 3)
+    whole, without = dict(index.rank(copy, 4)), dict(index.rank(copy, 4, without="blob"))
+    assert without["blob"] == -np.inf
+    assert without["scene"] >= 0.03 and without["scene"] > whole["scene"] + 0.3      # -0.36 -> 0.12
+    assert index.rank(copy, 4, without="not indexed") == index.rank(copy, 4)
+    # and in shape the scene is near by a view cut from it, far by its whole view
+    near, whole_view = index.shape_distances(copy, whole=True)
+    scene = index.keys.index("scene")
+    assert (whole_view >= near).all() and near[scene] <= 0.06 < whole_view[scene]
+    # through a faiss IVF too: no row of the asset left out is ever returned
+    ivf = index.with_ivf()
+    _, feats = features.describe(copy)
+    top, _ = ivf.nearest(feats, 8, without="blob")
+    assert (top >= 0).any() and not (ivf.owner[top[top >= 0]] == ivf.keys.index("blob")).any()
+    top, _ = index.nearest(feats, 8, without="blob")
+    assert not (index.owner[top[top >= 0]] == index.keys.index("blob")).any()

@@ -208,3 +208,30 @@ def test_a_sparse_turned_birdbath_message_is_read_at_the_pose_where_it_decodes(s
     assert np.array_equal(read["bits"], BITS) and read["detected"] and read["registration"]["fitness"] > 0.99
     wrong = keys.derive_key_material(b"another-secret-of-16-bytes-or-more", "evaluation")
     assert not watermark.decode_poses(estimate, ref.specs, wrong, params, dparams)["detected"]
+
+
+def test_laid_whole_tells_a_whole_copy_from_a_part_a_copy_beside_something_and_another_shape():
+    from pipeline.kernels import registration, resampling
+    from pipeline.nearest import NearestTree
+
+    original = demo.procedural_shape("blob", 4000, seed=3)
+    tree, normals = NearestTree(original), resampling.estimate_normals(original)
+    spacing = float(np.median(resampling.nearest_spacing(original)))
+    pose = registration.Similarity(np.eye(3), 1.0, np.zeros(3))
+    rng = np.random.default_rng(0)
+
+    def whole(points):
+        fitness, coverage, _ = registration.overlap(points, tree, original[::4], 3.0 * spacing)
+        return watermark.laid_whole(points, tree, pose, spacing, coverage, normals)
+
+    assert whole(original[rng.permutation(len(original))])                       # shuffled, as issued
+    assert not watermark.laid_whole(original, tree, pose, spacing, 1.0)           # no normals: not on the surface
+    assert whole(original[::2] + rng.normal(0, 0.3 * spacing, (2000, 3)))        # resampled, a little noise
+    assert not whole(original[original[:, 0] < np.median(original[:, 0])])       # a half: covers too little
+    far = original.max(axis=0) + 10 * spacing                                    # 16 points beyond: still whole
+    assert whole(np.vstack([original, far + rng.normal(0, spacing, (16, 3))]))
+    assert not whole(np.vstack([original, far + rng.normal(0, spacing, (watermark.WHOLE_OFF + 1, 3))]))
+    # another smooth shape crossing the band: near everywhere, on the surface almost nowhere
+    wave = np.sin(2 * np.pi * original[:, 0] / (0.2 * np.ptp(original[:, 0])))
+    other = original + normals * (2.5 * spacing * wave)[:, None]
+    assert not whole(other)

@@ -34,7 +34,7 @@ from .reference import load_reference
 from .tasks import copy_label
 
 __all__ = ["params_from_row", "reference_record", "check_asset", "decide", "usable_rows", "original_files", "held_rows", "unheld_copies",
-           "unheld_summary", "TOP"]
+           "unheld_summary", "laid_whole", "TOP"]
 
 TOP = 8          # best scores kept per reference and key, beyond those over the floor
 FLOOR = 4.0      # scores kept whatever their rank (an accusation needs more than 5 at any scale)
@@ -138,6 +138,11 @@ def check_asset(suspect_path, rows, materials, store, detect_params, *, places=(
         seconds["scoring"] += time.perf_counter() - t0
     return {"asset_key": rows[0]["asset_key"], "groups": groups, "stopped": stopped, "seconds": seconds,
             "unchecked": unchecked}
+
+
+def laid_whole(check):
+    """Whether a check laid the suspect whole on its asset's original (:func:`pipeline.watermark.laid_whole`)."""
+    return any(g["registration"].get("whole") for g in check["groups"])
 
 
 def original_files(rows, places=(), store=None):

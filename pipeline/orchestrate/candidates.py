@@ -23,7 +23,7 @@ from ..io.basis_store import find_file, find_files, map_faiss, read_file, write_
 from ..io.pointcloud import InputError, read_points, sha256_file
 from ..kernels.descriptor import d2_descriptor, descriptor_distance
 
-__all__ = ["triage", "candidates", "cascade", "build_index", "load_index", "planned_recipients", "INDEX_FORMAT", "MIN_POINTS"]
+__all__ = ["triage", "candidates", "cascade", "after_whole", "votes_without", "whole_may_stop", "build_index", "load_index", "planned_recipients", "INDEX_FORMAT", "MIN_POINTS"]
 
 
 TWIN_LENDERS = 10    # the assets with the most votes, whose twins (same shape, other sampling) share them
@@ -85,7 +85,8 @@ def triage(suspect_path, descriptors, index_path, index_sha256=None, twin_shape=
     cut as a crop cuts it, and without outliers), right for whole copies,
     scenes, outliers and crops; ``index_ranking``: by votes of local descriptors (FPFH) over the
     catalogue index, right for parts of an asset and assets inside a scene;
-    ``index_votes``: each one's share of the suspect's descriptors less its
+    ``whole_distances``: the same ranking's distances to each asset's whole
+    view alone; ``index_votes``: each one's share of the suspect's descriptors less its
     background share (inf for an exact geometry hash); ``twins``: for the
     :data:`TWIN_LENDERS` assets with the most votes, the assets whose whole
     view lies within ``twin_shape`` of theirs (:meth:`FeatureIndex.twins`;
@@ -96,10 +97,11 @@ def triage(suspect_path, descriptors, index_path, index_sha256=None, twin_shape=
     if len(points) < MIN_POINTS:
         raise InputError(f"{suspect_path}: {len(points)} point(s): too few to hold a watermark (at least {MIN_POINTS})")
     names = list(descriptors)
-    shaped, voted, twins = {}, [], {}
+    shaped, whole_shaped, voted, twins = {}, {}, [], {}
     if index_path:
         index = load_index(index_path, index_sha256)
-        shaped = dict(zip(index.keys, index.shape_distances(points)))
+        near, near_whole = index.shape_distances(points, whole=True)
+        shaped, whole_shaped = dict(zip(index.keys, near)), dict(zip(index.keys, near_whole))
         voted = index.rank(points, top_k=len(names))
         if twin_shape is not None:
             twins = index.twins([k for k, _ in voted[:TWIN_LENDERS]], twin_shape)
@@ -109,10 +111,12 @@ def triage(suspect_path, descriptors, index_path, index_sha256=None, twin_shape=
         whole = np.atleast_1d(descriptor_distance(d2_descriptor(points - points.mean(axis=0)),
                                                   np.array([descriptors[k] for k in missing])))
         shaped.update(zip(missing, whole))
+        whole_shaped.update(zip(missing, whole))
     dist = np.array([shaped[k] for k in names])
     order = np.argsort(dist, kind="stable")
     return {"path": str(suspect_path), "sha256": sha256_file(suspect_path), "n_points": len(points),
             "ranking": [names[i] for i in order], "distances": [float(dist[i]) for i in order],
+            "whole_distances": [float(whole_shaped[names[i]]) for i in order],
             "index_ranking": [k for k, _ in voted], "index_votes": [v for _, v in voted], "twins": twins,
             "seconds": time.perf_counter() - t0}
 
@@ -183,6 +187,104 @@ def cascade(info, picked, deep_votes, deep_shape, quick_shape):
         else:
             out[a] = None
     return out
+
+
+def votes_without(suspect_path, index_path, index_sha256, whole, twin_shape=None):
+    """Each asset's share of the suspect's descriptor votes with ``whole`` left out of the index.
+
+    A suspect laid whole on ``whole``'s original splits its votes between that
+    original and any asset holding the same surface (Lowe's ratio test):
+    with ``whole`` left out, such an asset draws them (:meth:`FeatureIndex.rank`).
+    Assets that hold it alike split them again; as in :func:`triage` and
+    :func:`cascade`, each of the :data:`TWIN_LENDERS` assets with the most
+    votes lends them to its twins (whole views within ``twin_shape``; None:
+    none).  With one asset left the votes tell nothing (it draws every one,
+    the background's too): None, as for an index that lacks ``whole``.
+
+    Returns
+    -------
+    dict
+        ``votes`` (asset key -> share less its background share, or None)
+        and ``seconds`` (this ranking's, the candidate search's too).
+    """
+    t0 = time.perf_counter()
+    index = load_index(index_path, index_sha256)
+    votes = None
+    if whole in index.keys and len(index.keys) >= 3:
+        ranked = index.rank(read_points(suspect_path).points, len(index.keys), without=whole)
+        votes = dict(ranked)
+        if twin_shape is not None:
+            for lender, near in index.twins([k for k, _ in ranked[:TWIN_LENDERS]], twin_shape).items():
+                for a, _ in near:
+                    if a != whole:
+                        votes[a] = max(votes[a], votes[lender])
+    return {"votes": votes, "seconds": time.perf_counter() - t0}
+
+
+def after_whole(info, stages, whole, deep_votes, deep_shape, without):
+    """The cascade once a check laid the suspect whole on the original of ``whole``
+    (:func:`pipeline.watermark.laid_whole`): an unmarked original, a copy
+    under another key, nothing beside it.
+
+    Such a suspect holds nothing but ``whole``'s surface, and another asset
+    can hold it only where that asset holds the same surface.  In this order:
+
+    - a twin of ``whole`` (the triage's ``twins``: the same shape sampled
+      otherwise, nothing more) may be it whole, which the quick steps
+      settle: the quick steps only;
+    - one whose votes reach ``deep_votes`` once ``whole`` is left out of
+      the index (``without``, from :func:`votes_without`) keeps its stage:
+      an asset that holds the suspect as a part of more (a scene asset
+      holding an object asset, cut down to the object) draws the votes the
+      object took;
+    - so does one within ``deep_shape`` of the suspect by a view cut from
+      it, or its dense view, but not by its whole view: a part of it is
+      shaped like the suspect;
+    - one within ``deep_shape`` by its whole view may be it whole: the
+      quick steps only;
+    - the others are not registered (None).
+
+    Their recipients still count in the threshold.
+
+    Parameters
+    ----------
+    info : dict, from :func:`triage`
+    stages : dict of asset key -> "deep", "quick" or None
+        The remaining candidates' stages (from :func:`cascade`).
+    whole : str
+        The asset whose original the suspect was laid on whole.
+    deep_votes, deep_shape : float or None
+        ``scan.deep_votes`` and ``scan.deep_shape``; None keeps every stage.
+    without : dict of asset key -> float, or None
+        :func:`votes_without`; None (no index, or it lacks ``whole``, or
+        holds fewer than three assets) keeps every stage.
+
+    Returns
+    -------
+    dict of asset key -> "deep", "quick" or None
+    """
+    if deep_votes is None or deep_shape is None or without is None:
+        return dict(stages)
+    shape = dict(zip(info.get("ranking", []), info.get("distances", [])))
+    whole_shape = dict(zip(info.get("ranking", []), info.get("whole_distances", info.get("distances", []))))
+    twins = {a for a, _ in info.get("twins", {}).get(whole, [])}
+    out = {}
+    for a, s in stages.items():
+        near, near_whole = shape.get(a, 0.0) <= deep_shape, whole_shape.get(a, 0.0) <= deep_shape
+        if a in twins:
+            out[a] = s and "quick"
+        elif without.get(a, float("inf")) >= deep_votes or (near and not near_whole):
+            out[a] = s          # not ranked or not indexed: as the cascade, it goes on as it was
+        elif near:
+            out[a] = s and "quick"
+        else:
+            out[a] = None
+    return out
+
+
+def whole_may_stop(stages, deep_votes, deep_shape):
+    """Whether :func:`after_whole` can change any of ``stages``: the gates set and a stage left to change."""
+    return deep_votes is not None and deep_shape is not None and any(s is not None for s in stages.values())
 
 
 INDEX_FORMAT = "v8"   # v2: inverted-file cells; v3: whole and cut shape views; v4: and the dense view;

@@ -20,8 +20,9 @@ from .. import config
 from ..io.ledger import Ledger
 from ..io.pointcloud import InputError, read_points, sha256_file
 from ..kernels.descriptor import d2_descriptor
-from .attribute import check_asset, decide, held_rows, original_files, unheld_copies, unheld_summary
-from .candidates import build_index, candidates, cascade, load_index, planned_recipients, triage
+from .attribute import check_asset, decide, held_rows, laid_whole, original_files, unheld_copies, unheld_summary
+from .candidates import (after_whole, build_index, candidates, cascade, load_index, planned_recipients, triage,
+                         votes_without, whole_may_stop)
 
 __all__ = ["detect_from_ledger", "candidate_groups"]
 
@@ -48,11 +49,12 @@ def _rank(suspect_path, groups, top_k, shape_margin, gates, store):
     source sha256) keys, and how far each one's check may go
     (:func:`pipeline.orchestrate.candidates.cascade` at ``gates``, the
     config's ``deep_votes``, ``deep_shape``, ``quick_shape`` and
-    ``twin_shape``; "deep" for one original).
+    ``twin_shape``; "deep" for one original), and the triage's shape ranking
+    and twins under those keys (for :func:`after_whole`).
     """
 
     if len(groups) == 1:
-        return list(groups), dict.fromkeys(groups, "deep")
+        return list(groups), dict.fromkeys(groups, "deep"), {}
     keys = {f"{asset}@{sha[:16]}": (asset, sha) for asset, sha in groups}
     found = {g: original_files(groups[g], store=store)[0] for g in keys.values()}
     paths = {k: found[g].get(g[1], groups[g][-1]["source_path"]) for k, g in keys.items()}
@@ -63,7 +65,11 @@ def _rank(suspect_path, groups, top_k, shape_margin, gates, store):
     *stage_gates, twin_shape = gates
     info = triage(suspect_path, descriptors, index_path, twin_shape=twin_shape)
     picked = candidates(info, set(keys), top_k, shape_margin)
-    return [keys[k] for k in picked], {keys[k]: s for k, s in cascade(info, picked, *stage_gates).items()}
+    shapes = {"ranking": [keys[k] for k in info["ranking"]], "distances": info["distances"],
+              "whole_distances": info["whole_distances"],
+              "twins": {keys[k]: [[keys[a], d] for a, d in near] for k, near in info["twins"].items()},
+              "index": index_path, "keys": keys}
+    return [keys[k] for k in picked], {keys[k]: s for k, s in cascade(info, picked, *stage_gates).items()}, shapes
 
 
 def _whole_d2(path):
@@ -71,22 +77,34 @@ def _whole_d2(path):
     return d2_descriptor(points - points.mean(axis=0))
 
 
-def _check_in_order(suspect, candidates, stages, groups, materials, store, detect_params):
+def _check_in_order(suspect, candidates, stages, groups, materials, store, detect_params, shapes=None,
+                    gates=(None, None, None)):
     """Check candidates best-ranked first and stop at the first match, as a scan does.
 
     The threshold counts every recipient of every candidate planned, those
-    the cascade stops (``stages``) included, so neither stopping early nor
-    the cascade adds a chance to accuse.
+    the cascade stops (``stages``, and :func:`after_whole` at ``gates``,
+    ``deep_votes``, ``deep_shape`` and ``twin_shape``, with ``shapes``, the
+    triage's from :func:`_rank`, once a check laid the suspect whole on an
+    original)
+    included, so neither stopping early nor the cascade adds a chance to
+    accuse.
     """
 
     planned = planned_recipients([groups[c] for c in candidates], materials)
-    checks = []
-    for c in candidates:
+    checks, stages, whole = [], dict(stages), False
+    for i, c in enumerate(candidates):
         if stages[c] is None:
             continue
         checks.append(check_asset(suspect, groups[c], materials, store, detect_params, deep=stages[c] == "deep"))
         if decide(checks, detect_params.epsilon, planned=planned)["accused"]:
             break
+        rest = {k: stages[k] for k in candidates[i + 1:]}
+        if not whole and shapes and shapes["index"] and laid_whole(checks[-1]) and whole_may_stop(rest, *gates[:2]):
+            whole = True
+            named = {v: k for k, v in shapes["keys"].items()}
+            without = votes_without(suspect, shapes["index"], None, named[c], gates[2])["votes"]
+            without = None if without is None else {shapes["keys"][k]: v for k, v in without.items()}
+            stages.update(after_whole(shapes, rest, c, *gates[:2], without))
     return {**decide(checks, detect_params.epsilon, planned=planned), "checks": checks}
 
 
@@ -120,8 +138,9 @@ def detect_from_ledger(suspect, ledger_dir, secret, detect_params, *, asset=None
     top_k = search["top_k"] if top_k is None else top_k
     shape_margin = search["shape_margin"] if shape_margin is None else shape_margin
     gates = config.cascade_gates(defaults) if gates == "config" else gates
-    candidates, stages = _rank(suspect, groups, top_k, shape_margin, gates, store)
-    result = _check_in_order(suspect, candidates, stages, groups, materials, store, detect_params)
+    candidates, stages, shapes = _rank(suspect, groups, top_k, shape_margin, gates, store)
+    result = _check_in_order(suspect, candidates, stages, groups, materials, store, detect_params, shapes,
+                             (gates[0], gates[1], gates[3]))
     checks = result.pop("checks")
     unchecked = [line for c in checks for line in c["unchecked"]]
     if unchecked and result["verdict"] != "match":      # never "no match" while copies went unchecked

@@ -76,8 +76,10 @@ from ..io.manifest import read_rows, write_rows
 from ..io.paths import check_apart, check_disjoint, source_folders
 from ..io.pointcloud import InputError, atomic_write_bytes, read_points, sha256_file
 from ..kernels.descriptor import d2_descriptor
-from .attribute import check_asset, decide, held_rows, original_files, params_from_row, unheld_copies, unheld_summary
-from .candidates import build_index, candidates, cascade, load_index, planned_recipients, triage
+from .attribute import (check_asset, decide, held_rows, laid_whole, original_files, params_from_row, unheld_copies,
+                        unheld_summary)
+from .candidates import (after_whole, build_index, candidates, cascade, load_index, planned_recipients, triage,
+                         votes_without, whole_may_stop)
 from .progress import Bar, Progress
 from .reference import load_reference
 
@@ -304,7 +306,7 @@ class _Work:
         self.index = (os.path.abspath(index_path), sha256_file(index_path)) if index_path else (None, None)
         self.counts = dict.fromkeys(_VERDICTS + ("skipped",), 0)
         self.progress = Progress.for_stream(cfg["dask"]["progress"], sys.stderr)
-        self.triages, self.waiting, self.pending = {}, {}, as_completed()
+        self.triages, self.waiting, self.shared, self.pending = {}, {}, {}, as_completed()
 
     def tally(self, verdict):
         self.counts[verdict] += 1
@@ -334,6 +336,8 @@ class _Work:
         """One finished triage or check: the suspect's next step, or its verdict."""
         if fut in self.triages:
             self._triaged(self.triages.pop(fut), fut)
+        elif fut in self.shared:
+            self._after_whole(self.shared.pop(fut), fut)
         else:
             self._checked(self.waiting.pop(fut), fut)
 
@@ -367,7 +371,7 @@ class _Work:
         info["checks"], info["errors"] = [], []
         stage = cascade(info, checked, *self.gates)
         info["stopped"] = sum(stage[a] is None for a in checked)      # not registered at all
-        info["queue"] = [(view[a], [str(ref["paths"][a])] if a in ref["paths"] else [], stage[a] == "deep")
+        info["queue"] = [(a, view[a], [str(ref["paths"][a])] if a in ref["paths"] else [], stage[a])
                          for a in checked if stage[a] is not None]
         if not self._submit_next(info):
             self._finished(info)
@@ -378,6 +382,15 @@ class _Work:
         else:
             info["errors"].append(_text(fut.exception()))
         matched = decide(info["checks"], self.detect_params.epsilon, _prior(info), info["planned"])["accused"]
+        if (not matched and "whole" not in info and self.index[0] and info["checks"] and laid_whole(info["checks"][-1])
+                and whole_may_stop({a: s for a, _, _, s in info["queue"]}, *self.gates[:2])):
+            # laid whole on one original: which other candidates may hold its surface
+            info["whole"] = info["checks"][-1]["asset_key"]
+            fut = self.client.submit(votes_without, os.path.abspath(info["path"]), *self.index, info["whole"],
+                                     self.twin_shape, pure=False, priority=1)
+            self.shared[fut] = info
+            self.pending.add(fut)
+            return
         if matched or not self._submit_next(info):
             self._finished(info)
 
@@ -388,6 +401,20 @@ class _Work:
         if not isinstance(self.progress, Bar):             # the bar says it on its own line
             print(f"[pointmark] scan: {plain_text(info['path'])}: {verdict}", file=sys.stderr, flush=True)
 
+    def _after_whole(self, info, fut):
+        """The queue once a check laid the suspect whole on an original (:func:`after_whole`); the
+        votes without it unknown (the task failed): every stage kept."""
+        without = None
+        if fut.status == "finished":
+            without = fut.result()["votes"]
+            info["seconds"] += fut.result()["seconds"]       # counted with the candidate search
+        stage = after_whole(info, {a: s for a, _, _, s in info["queue"]}, info["whole"], *self.gates[:2], without)
+        info["stopped_whole"] = sum(stage[a] is None for a, _, _, _ in info["queue"])
+        info["stopped"] += info["stopped_whole"]
+        info["queue"] = [(a, rows, places, stage[a]) for a, rows, places, _ in info["queue"] if stage[a] is not None]
+        if not self._submit_next(info):
+            self._finished(info)
+
     def _submit_next(self, info):
         """Submit the suspect's next candidate check; False when none is left.
 
@@ -396,10 +423,11 @@ class _Work:
         """
         if not info["queue"]:
             return False
-        rows, places, deep = info["queue"].pop(0)
+        _, rows, places, stage = info["queue"].pop(0)
         fut = self.client.submit(check_asset, os.path.abspath(info["path"]), rows, self.ref["materials"],
                                  os.path.abspath(self.ref["store"]), self.detect_params,
-                                 places=[os.path.abspath(p) for p in places], deep=deep, pure=False, priority=1)
+                                 places=[os.path.abspath(p) for p in places], deep=stage == "deep", pure=False,
+                                 priority=1)
         self.waiting[fut] = info
         self.pending.add(fut)
         return True
@@ -600,9 +628,13 @@ def _finish(out, versions, info, epsilon, store, keys_held):
             notes.append(f"no evidence picture: {_text(exc)}")
     stopped = info.get("stopped", 0) + sum(c.get("stopped", 0) for c in info["checks"])
     if stopped and result["verdict"] != "match":
-        notes.append(f"{stopped} candidate original(s) stopped by the cascade: no whole copy found, and too "
-                     f"few descriptor votes and too far in shape to hold a part of one (scan.deep_votes, "
-                     f"deep_shape, quick_shape); their recipients count in the threshold")
+        why = ("no whole copy found, and too few descriptor votes and too far in shape to hold a part of one "
+               "(scan.deep_votes, deep_shape, quick_shape)")
+        if info.get("stopped_whole"):
+            why += (f"; or, the suspect lying whole on {info['whole']}'s original with nothing beside it, neither "
+                    f"of its shape nor holding its surface")
+        notes.append(f"{stopped} candidate original(s) stopped by the cascade: {why}; their recipients count "
+                     f"in the threshold")
     regs = [g["registration"] for c in info["checks"] for g in c["groups"]]
     # the accused's registration, else the best one (most overlap) of any candidate
     reg = top["registration"] if top else max(regs, key=lambda r: min(r.get("fitness", 0), r.get("coverage", 0)),

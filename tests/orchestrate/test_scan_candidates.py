@@ -1,7 +1,7 @@
 """Which catalogue assets a scan checks for a suspect, and in what order."""
 
 from pipeline.orchestrate.candidates import candidates as _candidates
-from pipeline.orchestrate.candidates import cascade
+from pipeline.orchestrate.candidates import after_whole, cascade
 
 
 def _info(shape, distances, votes):
@@ -52,6 +52,32 @@ def test_a_candidate_takes_the_votes_of_its_twins_and_no_one_else_s():
     # a twin lends the votes it has, not more
     low = {**info, "index_votes": [0.02, 0.001, 0.2]}
     assert cascade(low, ["b"], 0.03, 0.05, None) == {"b": "quick"}
+
+
+def test_a_suspect_laid_whole_on_one_original_keeps_twins_and_whole_look_alikes_quick_and_holders_of_it_as_they_were():
+    # "w" laid it whole: "t" is its twin; "n" looks like it whole, "q" too but held to the quick steps;
+    # "c" has a cut view like it (a part of "c" may be it); "h" is far in shape but draws the votes
+    # once "w" is left out (a scene holding "w")
+    info = {"ranking": ["w", "n", "q", "c", "t", "h", "far", "farther"],
+            "distances": [0.0, 0.05, 0.06, 0.04, 0.2, 0.25, 0.3, 0.4],
+            "whole_distances": [0.0, 0.05, 0.06, 0.3, 0.2, 0.5, 0.3, 0.4],
+            "twins": {"w": [["t", 0.028]], "far": [["farther", 0.01]]}}
+    stages = {"n": "deep", "q": "quick", "c": "deep", "t": "deep", "h": "deep", "far": "deep", "farther": "deep"}
+    few = {"n": 0.0, "q": 0.0, "c": 0.0, "t": 0.5, "h": 0.04, "far": 0.01, "farther": -0.02}
+    assert after_whole(info, stages, "w", 0.03, 0.06, few) == {
+        "n": "quick", "q": "quick", "c": "deep", "t": "quick", "h": "deep", "far": None, "farther": None}
+    # votes keep any stage but a twin's; a stopped one stays stopped
+    assert after_whole(info, stages, "w", 0.03, 0.06, {**few, "n": 0.2, "far": 0.05})["n"] == "deep"
+    assert after_whole(info, stages, "w", 0.03, 0.06, {**few, "far": 0.05})["far"] == "deep"
+    assert after_whole(info, {**stages, "c": None}, "w", 0.03, 0.06, few)["c"] is None
+    # another's twins are not its twins; an asset without votes (not indexed) goes on as it was
+    assert after_whole(info, stages, "far", 0.03, 0.06, few)["farther"] == "quick"
+    assert after_whole(info, stages, "far", 0.03, 0.06, few)["t"] == "deep"
+    assert after_whole(info, stages, "w", 0.03, 0.06, {})["far"] == "deep"
+    # the cascade off, or the votes unknown: every stage kept
+    assert after_whole(info, stages, "w", None, 0.06, few) == stages
+    assert after_whole(info, stages, "w", 0.03, None, few) == stages
+    assert after_whole(info, stages, "w", 0.03, 0.06, None) == stages
 
 
 def test_the_index_is_kept_by_its_bytes_hash_and_a_changed_file_is_never_served_stale(tmp_path):

@@ -236,6 +236,26 @@ def test_the_cascade_stops_far_candidates_unregistered_and_still_counts_their_re
     assert _latest(tmp)["found.ply"]["verdict"] == "no match" and _latest(tmp)["found.ply"]["n_stopped"] == 2
 
 
+def test_in_a_catalogue_of_two_an_original_laid_whole_leaves_the_other_asset_its_deep_steps(world, scan):
+    # the blob's own check lays its unmarked original whole; with the blob left out, the torus alone
+    # would draw every vote (the background's too): the votes cannot tell whether it holds the blob,
+    # so the torus, sent deep by its shape at so wide a gate, keeps its deep steps
+    tmp, _ = world
+    original = read_points(tmp / "assets" / "asset-0.ply").points
+    write_array(tmp / "suspects", "own", attacks.apply_chain(original, [("random_similarity", None),
+                                                                      ("shuffle", None)], 4), "ply")
+    cfg = yaml.safe_load((tmp / "scan.yaml").read_text())
+    cfg["scan"].update(top_k=2, deep_shape=0.9, deep_votes=1.0)
+    (tmp / "scan.yaml").write_text(yaml.safe_dump(cfg))
+    res = scan(tmp)
+    assert res.returncode == 1, res.stdout + res.stderr          # bob's copy is still named
+    latest = _latest(tmp)
+    row = latest["own.ply"]
+    assert row["verdict"] == "no match" and row["n_checked"] == 4 and row["n_stopped"] == 0, row
+    assert row["seconds_deep_registration"] > 0.0
+    assert latest["found.ply"]["recipient"] == "bob"
+
+
 @pytest.fixture()
 def apart_scheduler(tmp_path):
     """A Dask scheduler and two one-thread workers started as separate processes, as an operator starts them."""
