@@ -850,6 +850,7 @@ class FeatureIndex:
         shapes : list of (V_i, D2_BINS) float, optional, per asset
         """
         self._refuse_indexed(keys)
+        self._priors_without = {}                      # every asset's background share changes with the rows
         faiss = _faiss() if self.ivf is not None else None
         if faiss is not None and not isinstance(faiss.downcast_InvertedLists(self.ivf.invlists),
                                                 faiss.ArrayInvertedLists):
@@ -947,6 +948,15 @@ class FeatureIndex:
         owners, first = np.unique(self.shape_owner, return_index=True)   # an asset's whole view comes first
         out_whole[owners] = dist[first]
         return out, out_whole
+
+    def _prior_without(self, key):
+        """:func:`background_votes` with ``key`` left out, kept per asset until :meth:`add` changes the rows."""
+        kept = getattr(self, "_priors_without", None)
+        if kept is None:
+            kept = self._priors_without = {}
+        if key not in kept:
+            kept[key] = background_votes(self, without=key)
+        return kept[key]
 
     def _cumulative_shapes(self):
         """``shapes``' cumulative histograms and where each run of one owner's rows starts, kept while
@@ -1046,7 +1056,7 @@ class FeatureIndex:
         score = np.full(len(self.keys), -np.inf)
         prior = self.prior if self.prior is not None else np.zeros(len(self.keys))
         if without is not None and self.prior is not None:
-            prior = background_votes(self, without=without)     # its background share goes to others too
+            prior = self._prior_without(without)              # its background share goes to others too
         for _, feats in describe_scales(points):
             if len(feats):
                 score = np.maximum(score, self.votes(feats, without=without) / len(feats) - prior)

@@ -716,7 +716,7 @@ def estimate_differences(suspect, reference, specs, bases, detect_params, params
                                                    normals, grams, spacing)
         record = _registration_record(pose, fitness, coverage, reference, detect_params)
         if chosen:
-            record["whole"] = laid_whole(suspect, tree, pose, float(np.median(spacing)), coverage, normals)
+            record["whole"] = laid_whole(suspect, tree, pose, float(np.median(spacing)), fitness, coverage, normals)
         return {"deltas": deltas, "support": support, "registration": record}
 
     return {
@@ -734,7 +734,7 @@ WHOLE_COVERAGE = 0.8  # least share of the original covered by such a copy
 LIES_ON_POINTS = 1500  # suspect points its distance to the surface is measured on
 
 
-def laid_whole(suspect, tree, pose, spacing, coverage, normals=None):
+def laid_whole(suspect, tree, pose, spacing, fitness, coverage, normals=None):
     """Whether ``pose`` lays the whole suspect on the original, and it covers the original: the suspect is
     a copy of it whole (an unmarked original, a copy under another key) with nothing else beside it.
 
@@ -753,8 +753,9 @@ def laid_whole(suspect, tree, pose, spacing, coverage, normals=None):
     pose : registration.Similarity
     spacing : float
         Median nearest-neighbour distance of the original.
-    coverage : float
-        Share of the original within 3 spacings of the posed suspect.
+    fitness, coverage : float
+        Share of the posed suspect within 3 spacings of the original, and of
+        the original within 3 spacings of it (:func:`registration.overlap`).
     normals : (m, 3) float, optional
 
     Returns
@@ -763,8 +764,7 @@ def laid_whole(suspect, tree, pose, spacing, coverage, normals=None):
     """
     if coverage < WHOLE_COVERAGE or normals is None:
         return False
-    dist, _ = tree.query(registration.apply(pose, suspect), distance_upper_bound=3.0 * spacing)
-    if int((dist >= 3.0 * spacing).sum()) > WHOLE_OFF:
+    if len(suspect) - round(fitness * len(suspect)) > WHOLE_OFF:
         return False
     sub = suspect[:: max(1, len(suspect) // LIES_ON_POINTS)]
     return bool(registration.lies_on(sub, tree, pose, spacing, normals))

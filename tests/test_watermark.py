@@ -222,10 +222,10 @@ def test_laid_whole_tells_a_whole_copy_from_a_part_a_copy_beside_something_and_a
 
     def whole(points):
         fitness, coverage, _ = registration.overlap(points, tree, original[::4], 3.0 * spacing)
-        return watermark.laid_whole(points, tree, pose, spacing, coverage, normals)
+        return watermark.laid_whole(points, tree, pose, spacing, fitness, coverage, normals)
 
     assert whole(original[rng.permutation(len(original))])                       # shuffled, as issued
-    assert not watermark.laid_whole(original, tree, pose, spacing, 1.0)           # no normals: not on the surface
+    assert not watermark.laid_whole(original, tree, pose, spacing, 1.0, 1.0)      # no normals: not on the surface
     assert whole(original[::2] + rng.normal(0, 0.3 * spacing, (2000, 3)))        # resampled, a little noise
     assert not whole(original[original[:, 0] < np.median(original[:, 0])])       # a half: covers too little
     far = original.max(axis=0) + 10 * spacing                                    # 16 points beyond: still whole
