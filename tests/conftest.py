@@ -178,3 +178,33 @@ class ScanIndexes:
 @pytest.fixture(scope="session")
 def scan_indexes(tmp_path_factory):
     return ScanIndexes(tmp_path_factory.mktemp("scan-indexes"))
+
+
+@pytest.fixture(scope="session")
+def shared_bases(tmp_path_factory):
+    """``evaluate.prepare_bases`` computed once per run for every test process (the handle).
+
+    The store lies where both of pytest-xdist's processes see it, and each entry's handle is
+    kept beside it (keyed by the model file's sha256 and the basis parameters), so a model's
+    bases at the default configuration, wanted by several files, are computed by the first
+    and loaded, verified against the handle's digests, by the rest.
+    """
+    import json
+
+    from pipeline.io.basis_store import BasisStore, write_file
+    from pipeline.io.pointcloud import sha256_file
+    from pipeline.orchestrate import evaluate
+
+    root = tmp_path_factory.getbasetemp()
+    store = (root.parent if os.environ.get("PYTEST_XDIST_WORKER") else root) / "shared-bases"
+
+    def get(path, params):
+        basis_params = evaluate._basis_params(params, params.n_coefficients)
+        name = f"{BasisStore(store).key(sha256_file(path), basis_params)}.handle.json"
+        if (store / name).is_file():
+            return tuple(json.loads((store / name).read_text()))
+        handle = evaluate.prepare_bases(path, basis_params, store)
+        write_file(store, name, json.dumps(list(handle)).encode())
+        return handle
+
+    return get

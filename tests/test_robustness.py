@@ -35,15 +35,14 @@ MATERIAL = keys.derive_key_material(b"robustness-test-secret", "robustness")
 
 
 @pytest.fixture(scope="module")
-def prepared(shared_data, tmp_path_factory):
-    """(model path, bases cache, parameters) per model, bases computed once."""
-    folder = tmp_path_factory.mktemp("bases")
+def prepared(shared_data, shared_bases):
+    """(model path, bases handle, parameters) per model, bases computed once per run."""
     out = {}
     for name, overrides in {**MODELS, "bun_zipper": {}}.items():
         sub = "meshes" if name == "bun_zipper" else "models"
         path = shared_data / sub / f"{name}.ply"
         params = replace(config.watermark_params(DEFAULT), **overrides)
-        out[name] = (str(path), evaluate.prepare_bases(path, evaluate._basis_params(params, params.n_coefficients), folder), params)
+        out[name] = (str(path), shared_bases(path, params), params)
     return out
 
 

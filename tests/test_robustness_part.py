@@ -20,8 +20,8 @@ from pipeline import config, surface
 from pipeline.config import DetectParams
 from pipeline.io.pointcloud import read_points
 from pipeline.kernels import attacks, keys, modulation
-from pipeline.watermark import (cluster_basis, decode, embed_with_bases, estimate_differences, frame_of,
-                                plan_clusters)
+from pipeline.orchestrate import evaluate
+from pipeline.watermark import decode, embed_with_bases, estimate_differences, frame_of
 from tests.conftest import ROOT
 
 pytestmark = pytest.mark.slow
@@ -32,18 +32,19 @@ MESSAGE = "5ca1ab1e"
 
 
 @pytest.fixture(scope="module")
-def marked(shared_data):
-    """Per model: original, marked copy, its frame, clusters and bases (computed once)."""
+def marked(shared_data, shared_bases):
+    """Per model: original, marked copy, its frame, clusters and bases (computed once per run)."""
     cache = {}
 
     def get(name):
         if name not in cache:
-            points = read_points(shared_data / "models" / f"{name}.ply").points
+            path = shared_data / "models" / f"{name}.ply"
+            points = read_points(path).points
             params = replace(config.watermark_params(DEFAULT), cluster_size=SIZES[name])
             frame = frame_of(points)
             centred = points - frame.centre
-            specs = plan_clusters(centred, params)
-            bases = [cluster_basis(centred[s.members], params)[1] for s in specs]
+            centre, phi, specs, bases = evaluate.load_bases(shared_bases(path, params), points, params)
+            assert np.array_equal(centre, frame.centre) and phi == frame.phi
             bits = modulation.hex_to_bits(MESSAGE, params.n_bits)
             copy = embed_with_bases(centred, specs, bases, MATERIAL, bits, params, frame.phi) + frame.centre
             cache[name] = (points, copy, frame, specs, bases, params, bits)

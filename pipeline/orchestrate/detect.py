@@ -54,7 +54,7 @@ def _rank(suspect_path, groups, top_k, shape_margin, gates, store):
     """
 
     if len(groups) == 1:
-        return list(groups), dict.fromkeys(groups, "deep"), {}
+        return list(groups), dict.fromkeys(groups, "deep"), {"seconds": 0.0}
     keys = {f"{asset}@{sha[:16]}": (asset, sha) for asset, sha in groups}
     found = {g: original_files(groups[g], store=store)[0] for g in keys.values()}
     paths = {k: found[g].get(g[1], groups[g][-1]["source_path"]) for k, g in keys.items()}
@@ -68,7 +68,7 @@ def _rank(suspect_path, groups, top_k, shape_margin, gates, store):
     shapes = {"ranking": [keys[k] for k in info["ranking"]], "distances": info["distances"],
               "whole_distances": info["whole_distances"],
               "twins": {keys[k]: [[keys[a], d] for a, d in near] for k, near in info["twins"].items()},
-              "index": index_path, "keys": keys}
+              "index": index_path, "keys": keys, "seconds": info["seconds"]}
     return [keys[k] for k in picked], {keys[k]: s for k, s in cascade(info, picked, *stage_gates).items()}, shapes
 
 
@@ -91,7 +91,7 @@ def _check_in_order(suspect, candidates, stages, groups, materials, store, detec
     """
 
     planned = planned_recipients([groups[c] for c in candidates], materials)
-    checks, stages, whole = [], dict(stages), False
+    checks, stages, whole, ranked_again = [], dict(stages), False, 0.0
     for i, c in enumerate(candidates):
         if stages[c] is None:
             continue
@@ -99,13 +99,15 @@ def _check_in_order(suspect, candidates, stages, groups, materials, store, detec
         if decide(checks, detect_params.epsilon, planned=planned)["accused"]:
             break
         rest = {k: stages[k] for k in candidates[i + 1:]}
-        if not whole and shapes and shapes["index"] and laid_whole(checks[-1]) and whole_may_stop(rest, *gates[:2]):
+        if not whole and shapes and shapes.get("index") and laid_whole(checks[-1]) and whole_may_stop(rest, *gates[:2]):
             whole = True
             named = {v: k for k, v in shapes["keys"].items()}
-            without = votes_without(suspect, shapes["index"], None, named[c], gates[2])["votes"]
-            without = None if without is None else {shapes["keys"][k]: v for k, v in without.items()}
+            again = votes_without(suspect, shapes["index"], None, named[c], gates[2])
+            ranked_again = again["seconds"]
+            without = None if again["votes"] is None else {shapes["keys"][k]: v for k, v in again["votes"].items()}
             stages.update(after_whole(shapes, rest, c, *gates[:2], without))
-    return {**decide(checks, detect_params.epsilon, planned=planned), "checks": checks}
+    return {**decide(checks, detect_params.epsilon, planned=planned), "checks": checks,
+            "seconds_ranked_again": ranked_again}
 
 
 def detect_from_ledger(suspect, ledger_dir, secret, detect_params, *, asset=None, store=None, top_k=None,
@@ -125,7 +127,9 @@ def detect_from_ledger(suspect, ledger_dir, secret, detect_params, *, asset=None
     -------
     dict
         The verdict of :func:`pipeline.orchestrate.attribute.decide`, plus
-        ``suspect``, ``candidates``, ``n_candidates_checked`` and per-check timings.
+        ``suspect``, ``candidates``, ``n_candidates_checked``, per-check timings
+        (``seconds``) and the candidate search's (``seconds_candidates``: the
+        ranking, and the ranking again once an original laid the suspect whole).
     """
     ledger = Ledger(ledger_dir)
     read_points(suspect)                         # a bad suspect stops here, before any work
@@ -142,6 +146,7 @@ def detect_from_ledger(suspect, ledger_dir, secret, detect_params, *, asset=None
     result = _check_in_order(suspect, candidates, stages, groups, materials, store, detect_params, shapes,
                              (gates[0], gates[1], gates[3]))
     checks = result.pop("checks")
+    seconds_candidates = shapes["seconds"] + result.pop("seconds_ranked_again")
     unchecked = [line for c in checks for line in c["unchecked"]]
     if unchecked and result["verdict"] != "match":      # never "no match" while copies went unchecked
         raise InputError(unchecked[0] + (f" (and {len(unchecked) - 1} more)" if len(unchecked) > 1 else ""))
@@ -156,5 +161,6 @@ def detect_from_ledger(suspect, ledger_dir, secret, detect_params, *, asset=None
         result["verdict"] = "inconclusive"
     result.update(unchecked=unheld_summary(unheld), n_unchecked=len(unheld))
     result.update(suspect=str(suspect), candidates=[c[0] for c in candidates], n_candidates_checked=len(checks),
-                  seconds=[c["seconds"] for c in checks], ledger_version=ledger.version())
+                  seconds=[c["seconds"] for c in checks], seconds_candidates=seconds_candidates,
+                  ledger_version=ledger.version())
     return result

@@ -58,6 +58,7 @@ def test_the_search_stops_at_the_first_match_and_counts_every_planned_recipient(
     out = detect_from_ledger(tmp / "first.ply", ledger, SECRET.encode(),
                              config.detect_params(config.load_config()))
     assert out["candidates"] == ["asset-0", "asset-1"] and out["n_candidates_checked"] == 1
+    assert out["seconds_candidates"] > 0 and len(out["seconds"]) == 1     # the search's time, then the check's
     assert [a["recipient"] for a in out["accused"]] == ["alice"]
     assert out["n_checked"] == 4      # the unchecked candidate's recipients count in the threshold
 
