@@ -128,11 +128,14 @@ WATERMARK = _section("Embedding parameters (paper, section 2.2).", {
                       "so planning time and memory are linear in the points; normals come from each "
                       "cluster's own points.  Needs cover: true and no seeds.  null: the whole asset at once.",
                       minimum=1000, maximum=1_000_000_000),
-    "code": _p(["repetition", "convolutional", "tailbiting"], "tailbiting",
+    "code": _p(["repetition", "convolutional", "tailbiting", "tailbiting-half"], "tailbiting",
                "Channel code of the payload: repetition (the paper: each bit on c chips), "
-               "convolutional (rate 1/2, K = 7, terminated) or tailbiting (rate 1/3, K = 9, "
-               "tail-biting): the same m x c chips over the coded word, soft max-log-MAP "
-               "decoding; either code needs chip_rate >= 3 for 32 bits."),
+               "convolutional (rate 1/2, K = 7, terminated), tailbiting (rate 1/3, K = 9, "
+               "tail-biting) or tailbiting-half (rate 1/2, K = 9, tail-biting): the same m x c chips "
+               "over the coded word, soft max-log-MAP decoding; for 32 bits convolutional and "
+               "tailbiting need chip_rate >= 3, tailbiting-half chip_rate >= 2 (on the range scan at "
+               "c 2 it decoded no more often than tailbiting at c 3 at the same distance: "
+               "bench/RESULTS.md)."),
     "band_noise": _p(("number", "null"), 0.01,
                      "Size the spectral band of each asset for this noise (fraction of phi, as the "
                      "noise attack of ROBUSTNESS.md): the chip rate drops below chip_rate, down to what "
@@ -701,7 +704,7 @@ class WatermarkParams:
     displacement: str = _W["displacement"]      # "xyz" (paper) or "normal": the same RMSE, along the normals
     amplitude: str = _NOT_SURVEY["amplitude"]   # phi of the whole model (paper) or of each cluster
     max_displacement: float | None = _NOT_SURVEY["max_displacement"]   # cap on any point's motion
-    code: str = _W["code"]                      # "repetition" (paper), "convolutional" or "tailbiting"
+    code: str = _W["code"]                      # "repetition" (paper), "convolutional", "tailbiting(-half)"
     tile_points: int | None = _W["tile_points"]  # large assets: clusters planned cell by cell
     band_noise: float | None = _W["band_noise"]  # size each asset's band for this noise (None: chip_rate)
     band_gain: float = _W["band_gain"]          # what the band's last coefficient keeps at band_noise

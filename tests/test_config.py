@@ -146,6 +146,11 @@ def test_a_code_longer_than_the_chips_is_refused_before_any_work(tmp_path):
         config.load_config(path)
     path.write_text("watermark:\n  code: convolutional\n  chip_rate: 3\n")
     assert config.load_config(path)["watermark"]["code"] == "convolutional"
+    path.write_text("watermark:\n  code: tailbiting-half\n  chip_rate: 1\n  band_noise: null\n")
+    with pytest.raises(config.ConfigError, match="watermark.code: .*chip_rate to at least 2"):
+        config.load_config(path)
+    path.write_text("watermark:\n  code: tailbiting-half\n  chip_rate: 2\n  band_noise: null\n")
+    assert config.watermark_params(config.load_config(path)).chip_rate == 2
 
 
 @pytest.mark.parametrize("name", ["demo.yaml", "workflow.yaml", "default.yaml"])

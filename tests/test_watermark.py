@@ -106,9 +106,26 @@ def test_the_convolutional_code_spends_the_same_motion_and_decodes_where_repetit
     assert errors["convolutional"] == 0 < errors["repetition"], errors
 
 
+@pytest.mark.parametrize("code, chip_rate", [("tailbiting", 10), ("tailbiting-half", 10), ("tailbiting-half", 2)])
+def test_a_tailbiting_word_spends_the_same_motion_and_decodes_after_noise(tile, reference, code, chip_rate):
+    # beta scaled as the band scales it (sqrt(10 / c)): the coded word on the same chips as the
+    # paper's repetition moves every point as far, and reads back whole through noise of 0.5 %
+    beta = PARAMS.beta * np.sqrt(10 / chip_rate)
+    coded, repeated = (replace(PARAMS, code=name, chip_rate=chip_rate, beta=beta) for name in (code, "repetition"))
+    marked = _embed(reference, coded)
+    rmse = [float(np.sqrt(((m - tile) ** 2).sum(axis=1).mean())) for m in (marked, _embed(reference, repeated))]
+    assert rmse[0] == pytest.approx(rmse[1], rel=1e-9)
+    diag = float(np.linalg.norm(tile.max(axis=0) - tile.min(axis=0)))
+    noise = np.random.default_rng(5).normal(0, 0.005 * diag / np.sqrt(3), tile.shape)
+    found = _bits(reference, marked + noise, coded)
+    assert found["detected"] and np.array_equal(found["bits"], BITS), found["bit_scores"]
+
+
 def test_a_code_the_chips_cannot_carry_is_refused():
     with pytest.raises(watermark.WatermarkError, match="chip_rate to at least 3"):
         watermark.plan_clusters(np.zeros((10, 3)), replace(PARAMS, code="convolutional", chip_rate=2))
+    with pytest.raises(watermark.WatermarkError, match="chip_rate to at least 2"):
+        watermark.plan_clusters(np.zeros((10, 3)), replace(PARAMS, code="tailbiting-half", chip_rate=1))
 
 
 @pytest.mark.parametrize("cap", [None, 0.01])

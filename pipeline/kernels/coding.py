@@ -1,4 +1,4 @@
-"""Channel codes for the payload: the paper's repetition and two convolutional codes.
+"""Channel codes for the payload: the paper's repetition and three convolutional codes.
 
 The paper repeats every bit ``chip_rate`` times (eq. 2): a repetition code,
 which at equal energy per payload bit gains nothing over sending each bit
@@ -14,6 +14,10 @@ coded word instead:
   32 bits, the chips of chip rate 3.  Its R * d_free at the effective rate
   (32 / 96) is 6, against 4.2 for the terminated code (32 / 76): about
   1.5 dB more at high signal-to-noise ratio.
+- ``tailbiting-half``: rate 1/2, constraint length 9, generators 561 and 753
+  (free distance 12), tail-biting: 64 symbols for 32 bits, the chips of
+  chip rate 2, for bands too narrow for three chips a bit (bench/RESULTS.md,
+  "The coded message at chip rate 2").
 
 Decoding is soft: max-log-MAP (the BCJR recursion in the log domain) over
 the per-coded-bit z-scores, whose hard decisions are those of the soft
@@ -24,16 +28,20 @@ paths kept whose last state is their first.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
-__all__ = ["CODES", "CONSTRAINT", "GENERATORS", "TAILBITING_CONSTRAINT", "TAILBITING_GENERATORS", "coded_length",
+__all__ = ["CODES", "CONSTRAINT", "GENERATORS", "TAILBITING_CONSTRAINT", "TAILBITING_GENERATORS",
+           "TAILBITING_HALF_GENERATORS", "coded_length",
            "least_chip_rate", "encode", "decode_soft", "chip_groups"]
 
-CODES = ("repetition", "convolutional", "tailbiting")
+CODES = ("repetition", "convolutional", "tailbiting", "tailbiting-half")
 GENERATORS = (0o171, 0o133)
 CONSTRAINT = 7
 TAILBITING_GENERATORS = (0o557, 0o663, 0o711)
 TAILBITING_CONSTRAINT = 9
+TAILBITING_HALF_GENERATORS = (0o561, 0o753)
 
 
 def coded_length(n_bits, code):
@@ -42,13 +50,16 @@ def coded_length(n_bits, code):
         return int(n_bits)
     if code == "convolutional":
         return len(GENERATORS) * (int(n_bits) + CONSTRAINT - 1)
-    if code == "tailbiting":
-        return len(TAILBITING_GENERATORS) * int(n_bits)
+    if code in _TAILBITING:
+        return _TAILBITING[code].out.shape[-1] * int(n_bits)
     raise ValueError(f"unknown code {code!r}; use one of {', '.join(CODES)}")
 
 
 def least_chip_rate(n_bits, code):
-    """Smallest chip rate whose ``n_bits`` x c chips carry the coded word (1 for repetition, 3 for 32 bits)."""
+    """Smallest chip rate whose ``n_bits`` x c chips carry the coded word.
+
+    1 for repetition; for 32 bits 3 under ``convolutional`` and ``tailbiting``, 2 under ``tailbiting-half``.
+    """
     return -(-coded_length(n_bits, code) // int(n_bits))
 
 
@@ -69,9 +80,25 @@ def _parity(x, constraint=CONSTRAINT):
 
 
 _NEXT, _OUT = _trellis()
-_TB_NEXT, _TB_OUT = _trellis(TAILBITING_GENERATORS, TAILBITING_CONSTRAINT)
-# the two (state, input) pairs that lead into each state, (S, 2) each
-_TB_CAME, _TB_FED = np.divmod(np.argsort(_TB_NEXT.ravel(), kind="stable").reshape(-1, 2), 2)
+
+
+class _Tailbiting(NamedTuple):
+    """The trellis of a tail-biting code (S = 2^(K - 1) states)."""
+
+    nxt: np.ndarray     # (S, 2) int, the state after each (state, input)
+    out: np.ndarray     # (S, 2, n_out) in {-1, +1}, the symbols sent
+    came: np.ndarray    # (S, 2) int, the two states that lead into each state
+    fed: np.ndarray     # (S, 2) int, and the input that leads from each of them
+
+
+def _tailbiting_tables(generators):
+    nxt, out = _trellis(generators, TAILBITING_CONSTRAINT)
+    came, fed = np.divmod(np.argsort(nxt.ravel(), kind="stable").reshape(-1, 2), 2)
+    return _Tailbiting(nxt, out, came, fed)
+
+
+_TAILBITING = {"tailbiting": _tailbiting_tables(TAILBITING_GENERATORS),
+               "tailbiting-half": _tailbiting_tables(TAILBITING_HALF_GENERATORS)}
 
 
 def encode(bits, code):
@@ -80,7 +107,7 @@ def encode(bits, code):
     Parameters
     ----------
     bits : (m,) {0, 1}
-    code : {"repetition", "convolutional", "tailbiting"}
+    code : {"repetition", "convolutional", "tailbiting", "tailbiting-half"}
 
     Returns
     -------
@@ -90,12 +117,13 @@ def encode(bits, code):
     if code == "repetition":
         return bits.astype(np.uint8)
     coded_length(len(bits), code)   # validates the name
-    if code == "tailbiting":
+    if code in _TAILBITING:
+        nxt, table = _TAILBITING[code].nxt, _TAILBITING[code].out
         memory = TAILBITING_CONSTRAINT - 1
         state = 0
         for u in np.tile(bits, -(-memory // max(len(bits), 1)))[-memory:]:   # the state the last bits leave
-            state = int(_TB_NEXT[state, u])                # (a word shorter than the memory, repeated)
-        nxt, table, feed = _TB_NEXT, _TB_OUT, bits
+            state = int(nxt[state, u])                     # (a word shorter than the memory, repeated)
+        feed = bits
     else:
         state, nxt, table = 0, _NEXT, _OUT
         feed = np.concatenate([bits, np.zeros(CONSTRAINT - 1, dtype=np.int64)])
@@ -114,7 +142,7 @@ def decode_soft(z, n_bits, code):
     z : (coded_length(n_bits, code),) float
         Score of each coded symbol, positive for a 1 (the correlator's z).
     n_bits : int
-    code : {"repetition", "convolutional", "tailbiting"}
+    code : {"repetition", "convolutional", "tailbiting", "tailbiting-half"}
 
     Returns
     -------
@@ -129,8 +157,8 @@ def decode_soft(z, n_bits, code):
         raise ValueError(f"{len(z)} scores for a {code} word of {n_bits} bits")
     if code == "repetition":
         return (z > 0).astype(np.uint8), z.copy()
-    if code == "tailbiting":
-        return _decode_tailbiting(z, n_bits)
+    if code in _TAILBITING:
+        return _decode_tailbiting(z, n_bits, _TAILBITING[code])
     steps = n_bits + CONSTRAINT - 1
     gamma = np.einsum("tk,suk->tsu", z.reshape(steps, len(GENERATORS)), _OUT)   # (T, S, 2) branch metrics
     gamma[n_bits:, :, 1] = -np.inf                                               # the tail is all zeros
@@ -150,25 +178,29 @@ def decode_soft(z, n_bits, code):
     return (margin > 0).astype(np.uint8), margin
 
 
-def _decode_tailbiting(z, n_bits):
-    """Exact max-log-MAP of the tail-biting word: alpha and beta per starting state, (S0, S) each step."""
-    states = _TB_NEXT.shape[0]
-    gamma = np.einsum("tk,suk->tsu", z.reshape(n_bits, len(TAILBITING_GENERATORS)), _TB_OUT)   # (T, S, 2)
+def _decode_tailbiting(z, n_bits, trellis):
+    """Exact max-log-MAP of the tail-biting word of ``trellis`` (a :class:`_Tailbiting`).
+
+    alpha and beta per starting state, (S0, S) each step; ``z`` is (n_bits * n_out,).
+    """
+    nxt, out, came, fed = trellis
+    states = nxt.shape[0]
+    gamma = np.einsum("tk,suk->tsu", z.reshape(n_bits, out.shape[-1]), out)                    # (T, S, 2)
     start = np.where(np.eye(states, dtype=bool), 0.0, -np.inf)                                 # (S0, S)
     alpha = np.empty((n_bits + 1, states, states))
     alpha[0] = start
     for t in range(n_bits):
-        alpha[t + 1] = np.maximum(alpha[t][:, _TB_CAME[:, 0]] + gamma[t][_TB_CAME[:, 0], _TB_FED[:, 0]],
-                                  alpha[t][:, _TB_CAME[:, 1]] + gamma[t][_TB_CAME[:, 1], _TB_FED[:, 1]])
+        alpha[t + 1] = np.maximum(alpha[t][:, came[:, 0]] + gamma[t][came[:, 0], fed[:, 0]],
+                                  alpha[t][:, came[:, 1]] + gamma[t][came[:, 1], fed[:, 1]])
     beta = np.empty_like(alpha)
     beta[n_bits] = start                                      # the last state is the first
     for t in range(n_bits - 1, -1, -1):
-        beta[t] = np.maximum(gamma[t][:, 0] + beta[t + 1][:, _TB_NEXT[:, 0]],
-                             gamma[t][:, 1] + beta[t + 1][:, _TB_NEXT[:, 1]])
+        beta[t] = np.maximum(gamma[t][:, 0] + beta[t + 1][:, nxt[:, 0]],
+                             gamma[t][:, 1] + beta[t + 1][:, nxt[:, 1]])
     best = np.empty((n_bits, 2))
     for t in range(n_bits):
         for u in range(2):
-            best[t, u] = (gamma[t][:, u] + (alpha[t] + beta[t + 1][:, _TB_NEXT[:, u]]).max(axis=0)).max()
+            best[t, u] = (gamma[t][:, u] + (alpha[t] + beta[t + 1][:, nxt[:, u]]).max(axis=0)).max()
     margin = 0.5 * (best[:, 1] - best[:, 0])
     return (margin > 0).astype(np.uint8), margin
 

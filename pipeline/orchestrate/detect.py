@@ -50,7 +50,7 @@ def _rank(suspect_path, groups, top_k, shape_margin, gates, store):
     (:func:`pipeline.orchestrate.candidates.cascade` at ``gates``, the
     config's ``deep_votes``, ``deep_shape``, ``quick_shape`` and
     ``twin_shape``; "deep" for one original), and the triage's shape ranking
-    and twins under those keys (for :func:`after_whole`).
+    and twins under those keys (for :func:`after_whole`) with its ``seconds``.
     """
 
     if len(groups) == 1:
@@ -87,7 +87,7 @@ def _check_in_order(suspect, candidates, stages, groups, materials, store, detec
     triage's from :func:`_rank`, once a check laid the suspect whole on an
     original)
     included, so neither stopping early nor the cascade adds a chance to
-    accuse.
+    accuse.  The result holds ``seconds_ranked_again``, what :func:`votes_without` took (0 when not called).
     """
 
     planned = planned_recipients([groups[c] for c in candidates], materials)
@@ -128,8 +128,9 @@ def detect_from_ledger(suspect, ledger_dir, secret, detect_params, *, asset=None
     dict
         The verdict of :func:`pipeline.orchestrate.attribute.decide`, plus
         ``suspect``, ``candidates``, ``n_candidates_checked``, per-check timings
-        (``seconds``) and the candidate search's (``seconds_candidates``: the
-        ranking, and the ranking again once an original laid the suspect whole).
+        (``seconds``) and the candidate search's (``seconds_candidates``, as a
+        scan counts it: the triage, and the ranking again once an original
+        laid the suspect whole; not the index's build nor finding the originals).
     """
     ledger = Ledger(ledger_dir)
     read_points(suspect)                         # a bad suspect stops here, before any work

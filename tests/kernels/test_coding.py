@@ -79,34 +79,44 @@ def test_wrong_lengths_and_names_are_refused():
 
 
 @pytest.mark.parametrize("n_bits,code,least", [(32, "convolutional", 3), (24, "convolutional", 3), (32, "tailbiting", 3),
-                                               (8, "convolutional", 4), (32, "repetition", 1)])
+                                               (32, "tailbiting-half", 2), (8, "convolutional", 4), (32, "repetition", 1)])
 def test_the_least_chip_rate_is_the_first_that_carries_the_coded_word(n_bits, code, least):
     assert coding.least_chip_rate(n_bits, code) == least
     assert n_bits * least >= coding.coded_length(n_bits, code) > n_bits * (least - 1)
 
 
-def _tailbiting_codebook(n_bits):
+# each tail-biting code: its generators and its least weight over 32 bits (its free distance)
+TAILBITING = {"tailbiting": (coding.TAILBITING_GENERATORS, 18),
+              "tailbiting-half": (coding.TAILBITING_HALF_GENERATORS, 12)}
+
+
+def _tailbiting_codebook(n_bits, code="tailbiting"):
     words = np.array(list(itertools.product([0, 1], repeat=n_bits)), dtype=np.uint8)
-    return words, np.stack([coding.encode(w, "tailbiting") for w in words]).astype(np.float64) * 2 - 1
+    return words, np.stack([coding.encode(w, code) for w in words]).astype(np.float64) * 2 - 1
 
 
-def test_the_tailbiting_word_turns_with_its_bits():
+@pytest.mark.parametrize("code", TAILBITING)
+def test_the_tailbiting_word_turns_with_its_bits(code):
     # tail-biting: no tail, and the encoder starts where its last bits leave it,
-    # so turning the bits by one turns the word by one symbol triple
+    # so turning the bits by one turns the word by one group of symbols
+    generators, _ = TAILBITING[code]
+    n = len(generators)
     bits = np.random.default_rng(3).integers(0, 2, 32)
-    word = coding.encode(bits, "tailbiting")
-    assert len(word) == coding.coded_length(32, "tailbiting") == 96
-    assert np.array_equal(coding.encode(np.roll(bits, 5), "tailbiting"), np.roll(word, 15))
-    taps = [[int(b) for b in format(g, "09b")] for g in coding.TAILBITING_GENERATORS]
-    impulse = coding.encode(np.eye(32, dtype=int)[0], "tailbiting")      # a single 1 at the start
-    assert impulse[:27].tolist() == [b for triple in zip(*taps) for b in triple]
-    assert not impulse[27:].any()
+    word = coding.encode(bits, code)
+    assert len(word) == coding.coded_length(32, code) == 32 * n
+    assert np.array_equal(coding.encode(np.roll(bits, 5), code), np.roll(word, 5 * n))
+    taps = [[int(b) for b in format(g, "09b")] for g in generators]
+    impulse = coding.encode(np.eye(32, dtype=int)[0], code)      # a single 1 at the start
+    assert impulse[:9 * n].tolist() == [b for group in zip(*taps) for b in group]
+    assert not impulse[9 * n:].any()
 
 
-def test_the_tailbiting_free_distance_is_18_on_32_bits():
+@pytest.mark.parametrize("code", TAILBITING)
+def test_the_tailbiting_free_distance_on_32_bits(code):
     # every nonzero 32-bit word, through the trellis: per start state, the least output weight
     # of a path that returns to it, with and without a 1 fed so far (min-plus recursion)
-    nxt, out = coding._trellis(coding.TAILBITING_GENERATORS, coding.TAILBITING_CONSTRAINT)
+    generators, distance = TAILBITING[code]
+    nxt, out = coding._trellis(generators, coding.TAILBITING_CONSTRAINT)
     weight = (out > 0).sum(axis=-1)                                   # (S, 2)
     states = len(nxt)
     least = np.full((2, states, states), np.inf)                      # [fed a 1, start, state]
@@ -119,24 +129,25 @@ def test_the_tailbiting_free_distance_is_18_on_32_bits():
                 target = 1 if u else flag
                 np.minimum.at(step[target], (slice(None), nxt[:, u]), moved[flag])
         least = step
-    assert least[1][np.arange(states), np.arange(states)].min() == 18
+    assert least[1][np.arange(states), np.arange(states)].min() == distance
     ones = np.zeros(32, dtype=int)                                    # and a word that reaches it
     weights = []
     for w in (1, 2, 3):
         for at in itertools.combinations(range(32), w):
             ones[:] = 0
             ones[list(at)] = 1
-            weights.append(int(coding.encode(ones, "tailbiting").sum()))
-    assert min(weights) == 18
+            weights.append(int(coding.encode(ones, code).sum()))
+    assert min(weights) == distance
 
 
+@pytest.mark.parametrize("code", TAILBITING)
 @pytest.mark.parametrize("sigma", [0.6, 1.2, 2.0])
-def test_tailbiting_decoding_is_maximum_likelihood_with_max_log_margins(sigma):
-    words, book = _tailbiting_codebook(10)
+def test_tailbiting_decoding_is_maximum_likelihood_with_max_log_margins(sigma, code):
+    words, book = _tailbiting_codebook(10, code)
     rng = np.random.default_rng(int(sigma * 10))
     for _ in range(12):
         z = book[rng.integers(len(words))] + rng.normal(0, sigma, book.shape[1])
-        bits, margin = coding.decode_soft(z, 10, "tailbiting")
+        bits, margin = coding.decode_soft(z, 10, code)
         metric = book @ z
         assert bits.tolist() == words[np.argmax(metric)].tolist()
         for j in range(10):
@@ -161,13 +172,14 @@ def test_the_tailbiting_code_beats_the_terminated_code_on_the_same_chips():
     assert errors["convolutional"] >= 10 and 2 * errors["tailbiting"] < errors["convolutional"], errors
 
 
+@pytest.mark.parametrize("code", TAILBITING)
 @pytest.mark.parametrize("n_bits", range(1, 10))
-def test_short_tailbiting_words_round_trip(n_bits):
+def test_short_tailbiting_words_round_trip(n_bits, code):
     # fewer bits than the register's memory: the start state is the one the repeated word leaves
     words = np.array(list(itertools.product([0, 1], repeat=n_bits)), dtype=np.uint8)
-    coded = np.stack([coding.encode(w, "tailbiting") for w in words])
+    coded = np.stack([coding.encode(w, code) for w in words])
     assert len({c.tobytes() for c in coded}) == len(words)                    # every word its own
     for i in np.random.default_rng(n_bits).permutation(len(words))[:24]:
         w, c = words[i], coded[i]
-        bits, _ = coding.decode_soft(2.0 * c - 1, n_bits, "tailbiting")
+        bits, _ = coding.decode_soft(2.0 * c - 1, n_bits, code)
         assert bits.tolist() == w.tolist()
