@@ -29,7 +29,7 @@ __all__ = [
     "fingerprint_displacement", "cluster_amplitude", "budget_share",
     "capped", "mark_reach", "cluster_fingerprint", "check_count", "check_digest",
     "fingerprint_observation", "ReferenceMismatch", "params_record", "params_from_record", "ADDED_LATER",
-    "band_for", "band_applies", "laid_whole",
+    "band_for", "band_applies", "laid_whole", "lies_on",
 ]
 
 
@@ -687,8 +687,10 @@ def estimate_differences(suspect, reference, specs, bases, detect_params, params
     -------
     dict with ``seconds_quick`` and ``seconds_deep`` (the registration's two parts), ``deltas`` (list of (K, 3) float), ``support`` and ``registration``
         (method, scale, fitness and coverage within 3 spacings, residual,
-        rotation, translation, and ``failed`` when fitness or coverage is
-        under :data:`REGISTERED`), and ``other_poses``: the same three for
+        rotation, translation, ``failed`` when fitness or coverage is
+        under :data:`REGISTERED`; at the chosen pose also ``lies_on``
+        (:func:`lies_on`), ``whole`` (:func:`laid_whole`) and, where whole,
+        ``sampling``: the suspect's median spacing there over the original's), and ``other_poses``: the same three for
         each other pose that fits about as well (a part of a near-symmetric
         shape, :func:`register`; empty unless ``every_pose``), which a
         fingerprint reader scores too and counts.
@@ -716,7 +718,11 @@ def estimate_differences(suspect, reference, specs, bases, detect_params, params
                                                    normals, grams, spacing)
         record = _registration_record(pose, fitness, coverage, reference, detect_params)
         if chosen:
-            record["whole"] = laid_whole(suspect, tree, pose, float(np.median(spacing)), fitness, coverage, normals)
+            step = float(np.median(spacing))
+            record["lies_on"] = lies_on(suspect, tree, pose, step, normals)
+            record["whole"] = bool(record["lies_on"]) and _covers_whole(len(suspect), fitness, coverage)
+            if record["whole"]:       # the suspect's own spacing at this pose, in the original's
+                record["sampling"] = _own_spacing(suspect) * pose.scale / step
         return {"deltas": deltas, "support": support, "registration": record}
 
     return {
@@ -762,12 +768,45 @@ def laid_whole(suspect, tree, pose, spacing, fitness, coverage, normals=None):
     -------
     bool
     """
-    if coverage < WHOLE_COVERAGE or normals is None:
-        return False
-    if len(suspect) - round(fitness * len(suspect)) > WHOLE_OFF:
-        return False
+    return normals is not None and _covers_whole(len(suspect), fitness, coverage) and bool(
+        lies_on(suspect, tree, pose, spacing, normals))
+
+
+def _covers_whole(n_points, fitness, coverage):
+    """At most :data:`WHOLE_OFF` of ``n_points`` off the original, and at least :data:`WHOLE_COVERAGE` of it covered."""
+    return coverage >= WHOLE_COVERAGE and n_points - round(fitness * n_points) <= WHOLE_OFF
+
+
+def lies_on(suspect, tree, pose, spacing, normals=None):
+    """Whether ``pose`` lays the suspect on the original's surface, not merely near it.
+
+    :func:`registration.lies_on` on at most :data:`LIES_ON_POINTS` of the
+    suspect's points: half of them within 3 spacings, and there no farther
+    from the tangent planes than the roughness of both allows.
+
+    Parameters
+    ----------
+    suspect : (n, 3) float
+    tree : NearestTree of the original (m, 3)
+    pose : registration.Similarity
+    spacing : float
+        Median nearest-neighbour distance of the original.
+    normals : (m, 3) float, optional
+
+    Returns
+    -------
+    bool or None
+        None without the original's normals.
+    """
+    if normals is None:
+        return None
     sub = suspect[:: max(1, len(suspect) // LIES_ON_POINTS)]
     return bool(registration.lies_on(sub, tree, pose, spacing, normals))
+
+
+def _own_spacing(points):
+    """The median nearest-neighbour distance of a point set (float), in its own units."""
+    return float(np.median(resampling.nearest_spacing(points)))
 
 
 def _registration_record(transform, fitness, coverage, reference, detect_params):
@@ -916,7 +955,7 @@ def register(suspect, reference, spacing, detect_params, tree, normals=None, *, 
     # are registered whole, and failing that the feature-based global step
     # competes.  A sparse copy (10 % of the points) covers its original at
     # its own spacing, not the original's.
-    sampling = float(np.median(resampling.nearest_spacing(suspect))) * robust.scale
+    sampling = _own_spacing(suspect) * robust.scale
     fitness, coverage, _ = registration.overlap(registration.apply(robust, suspect), tree,
                                                 _coverage_sample(reference), 3.0 * max(spacing, sampling))
     if min(fitness, coverage) >= 0.8:

@@ -33,7 +33,7 @@ import numpy as np
 from .pointcloud import atomic_write_bytes
 
 __all__ = ["BasisStore", "reference_params", "stand_in", "find_file", "find_files", "read_file", "map_faiss",
-           "write_file", "STORE_VERSION"]
+           "write_file", "record_holding", "read_holdings", "STORE_VERSION"]
 
 STORE_VERSION = 1
 _REFERENCE_FIELDS = ("n_bits", "crc_bits", "chip_rate", "first_coefficient", "valence", "n_clusters",
@@ -171,6 +171,58 @@ def write_file(folder, relative, data):
         print(f"[pointmark] {folder} cannot be written ({reason}): what it lacks goes to {spare}",
               file=sys.stderr, flush=True)
     return path
+
+
+def _holding_folder(whole, other, effort):
+    return f"holdings/{whole[:32]}/{other[:32]}-{effort[:16]}"
+
+
+def record_holding(folder, whole, other, effort, witness, record):
+    """Keep one witness of whether ``other``'s originals hold the surface of ``whole``'s.
+
+    A record is a small JSON file per witness (a suspect laid whole on
+    ``whole``'s original, then registered on ``other``'s), written once and
+    never replaced: a second record from the same witness is not written.
+
+    Parameters
+    ----------
+    folder : str or Path
+        The basis store.
+    whole, other : str
+        Hex identities of the two assets' originals (sha256 of their bytes).
+    effort : str
+        Hex digest of the registration's settings the witness was made with.
+    witness : str
+        The suspect's sha256.
+    record : dict
+        JSON-serialisable; ``held`` (bool) is what readers use.
+
+    Returns
+    -------
+    pathlib.Path or None
+        Where it was written; None when this witness was recorded before.
+    """
+    relative = f"{_holding_folder(whole, other, effort)}/{witness[:32]}.json"
+    if find_file(folder, relative):
+        return None
+    return write_file(folder, relative, json.dumps(record, sort_keys=True).encode())
+
+
+def read_holdings(folder, whole, other, effort):
+    """Every witness recorded by :func:`record_holding` for the pair, as dicts.
+
+    Returns
+    -------
+    list of dict, or None
+        None when a record cannot be read or parsed: what it said is unknown.
+    """
+    records = []
+    for path in find_files(folder, f"{_holding_folder(whole, other, effort)}/*.json"):
+        try:
+            records.append(json.loads(read_file(path)))
+        except (OSError, ValueError):
+            return None
+    return records
 
 
 def reference_params(params):

@@ -87,7 +87,7 @@ def check_asset(suspect_path, rows, materials, store, detect_params, *, places=(
     dict
         ``groups`` (one per reference and key id: asset, key id, recipients
         scored, their best scores, presence p-value, registration, original
-        path), ``stopped`` (references left unscored after the quick
+        path and sha256), ``stopped`` (references left unscored after the quick
         registration steps), ``unchecked`` (lines from :func:`original_files`:
         copies whose original no file holds) and timings (``registration``,
         of it ``quick`` and ``deep``, ``estimate``, ``scoring``).
@@ -134,7 +134,7 @@ def check_asset(suspect_path, rows, materials, store, detect_params, *, places=(
             if key_id in materials:
                 rows_g = [r for r in ref_rows if (r["key_id"], r["generation_id"]) == (key_id, generation_id)]
                 groups.append({**_score_group(ys, ref, params, rows_g, materials[key_id], est),
-                               "original_path": str(files[sha])})
+                               "original_path": str(files[sha]), "original_sha256": sha})
         seconds["scoring"] += time.perf_counter() - t0
     return {"asset_key": rows[0]["asset_key"], "groups": groups, "stopped": stopped, "seconds": seconds,
             "unchecked": unchecked}

@@ -6,24 +6,33 @@ over the catalogue index (:func:`build_index`, kept per catalogue version).
 :func:`candidates` interleaves the two rankings; :func:`planned_recipients`
 counts every recipient the checks of those candidates could accuse, so the
 threshold is corrected for all of them whichever check stops the search.
+:func:`cascade` decides how far each check may go; once a check lays the
+suspect whole on one original, :func:`after_whole` stages the rest again,
+with what earlier copies laid whole on it witnessed (:func:`holdings`,
+kept by :func:`witness`).
 """
 
 from __future__ import annotations
 
 import hashlib
 import io
+import json
+import sys
 import time
 import zipfile
 from collections import OrderedDict
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
 
-from ..io.basis_store import find_file, find_files, map_faiss, read_file, write_file
+from ..io.basis_store import find_file, find_files, map_faiss, read_file, read_holdings, record_holding, write_file
 from ..io.pointcloud import InputError, read_points, sha256_file
 from ..kernels.descriptor import d2_descriptor, descriptor_distance
 
-__all__ = ["triage", "candidates", "cascade", "after_whole", "votes_without", "whole_may_stop", "build_index", "load_index", "planned_recipients", "INDEX_FORMAT", "MIN_POINTS"]
+__all__ = ["triage", "candidates", "cascade", "after_whole", "votes_without", "whole_may_stop", "witness_settings",
+           "whole_original", "holding_of", "held_by", "holdings", "witness", "build_index", "load_index",
+           "planned_recipients", "INDEX_FORMAT", "MIN_POINTS", "HOLD_FIT"]
 
 
 TWIN_LENDERS = 10    # the assets with the most votes, whose twins (same shape, other sampling) share them
@@ -221,7 +230,7 @@ def votes_without(suspect_path, index_path, index_sha256, whole, twin_shape=None
     return {"votes": votes, "seconds": time.perf_counter() - t0}
 
 
-def after_whole(info, stages, whole, deep_votes, deep_shape, without):
+def after_whole(info, stages, whole, deep_votes, deep_shape, without, held=None):
     """The cascade once a check laid the suspect whole on the original of ``whole``
     (:func:`pipeline.watermark.laid_whole`): an unmarked original, a copy
     under another key, nothing beside it.
@@ -232,6 +241,10 @@ def after_whole(info, stages, whole, deep_votes, deep_shape, without):
     - a twin of ``whole`` (the triage's ``twins``: the same shape sampled
       otherwise, nothing more) may be it whole, which the quick steps
       settle: the quick steps only;
+    - one that an earlier copy laid whole on the same original was
+      registered on, deep, and lay on nowhere (``held`` False, from
+      :func:`held_by`) is not registered; one it lay on (``held`` True)
+      keeps its stage;
     - one whose votes reach ``deep_votes`` once ``whole`` is left out of
       the index (``without``, from :func:`votes_without`) keeps its stage:
       an asset that holds the suspect as a part of more (a scene asset
@@ -256,30 +269,219 @@ def after_whole(info, stages, whole, deep_votes, deep_shape, without):
     deep_votes, deep_shape : float or None
         ``scan.deep_votes`` and ``scan.deep_shape``; None keeps every stage.
     without : dict of asset key -> float, or None
-        :func:`votes_without`; None (no index, or it lacks ``whole``, or
-        holds fewer than three assets) keeps every stage.
+        :func:`votes_without` ({} where it was not needed: every candidate
+        witnessed); None (no index, or it lacks ``whole``, or holds fewer
+        than three assets, or the ranking failed) keeps every stage that
+        ``held`` does not decide, twins' too.
+    held : dict of asset key -> bool or None, optional
+        :func:`held_by` of the witnesses recorded for ``whole`` and each
+        candidate; absent or None: no witness.
 
     Returns
     -------
     dict of asset key -> "deep", "quick" or None
     """
-    if deep_votes is None or deep_shape is None or without is None:
+    if deep_votes is None or deep_shape is None:
         return dict(stages)
+    held = held or {}
     shape = dict(zip(info.get("ranking", []), info.get("distances", [])))
     whole_shape = dict(zip(info.get("ranking", []), info.get("whole_distances", info.get("distances", []))))
-    twins = {a for a, _ in info.get("twins", {}).get(whole, [])}
+    twins = {a for a, _ in info.get("twins", {}).get(whole, [])} if without is not None else set()
     out = {}
     for a, s in stages.items():
         near, near_whole = shape.get(a, 0.0) <= deep_shape, whole_shape.get(a, 0.0) <= deep_shape
         if a in twins:
             out[a] = s and "quick"
-        elif without.get(a, float("inf")) >= deep_votes or (near and not near_whole):
+        elif held.get(a) is not None:
+            out[a] = s if held[a] else None
+        elif without is None or without.get(a, float("inf")) >= deep_votes or (near and not near_whole):
             out[a] = s          # not ranked or not indexed: as the cascade, it goes on as it was
         elif near:
             out[a] = s and "quick"
         else:
             out[a] = None
     return out
+
+
+HOLD_FIT = 0.5        # least share of a copy laid whole on one original lying on another, for that one to hold it
+HOLDING_FORMAT = 1    # what a witness record means; a new format starts the records afresh
+SAMPLING_TIE = 1.25   # a witness about as sparse as a suspect: its spacing at least the suspect's / this
+
+
+def witness_settings(detect_params):
+    """Hex digest of the registration settings a witness depends on (and of :data:`HOLDING_FORMAT`).
+
+    Parameters
+    ----------
+    detect_params : DetectParams
+
+    Returns
+    -------
+    str or None
+        None where witnesses are not kept: a registration other than the
+        robust cascade's.
+    """
+    if detect_params.registration != "robust":
+        return None
+    fields = {k: getattr(detect_params, k) for k in ("registration", "ransac_iterations", "search_rotations",
+                                                       "search_poses")}
+    return hashlib.sha256(json.dumps({**fields, "format": HOLDING_FORMAT}, sort_keys=True).encode()).hexdigest()
+
+
+def whole_original(check):
+    """The original a check laid the suspect whole on (:func:`pipeline.orchestrate.attribute.laid_whole`).
+
+    Parameters
+    ----------
+    check : dict, from :func:`pipeline.orchestrate.attribute.check_asset`
+
+    Returns
+    -------
+    dict or None
+        ``asset_key``, ``sha256`` (the original's bytes) and ``sampling``
+        (the suspect's median spacing over the original's, at that pose);
+        None where no registration laid it whole.
+    """
+    for g in check["groups"]:
+        if g["registration"].get("whole"):
+            return {"asset_key": check["asset_key"], "sha256": g["original_sha256"],
+                    "sampling": g["registration"].get("sampling")}
+    return None
+
+
+def holding_of(check, deep):
+    """What one check of another asset, made after the suspect was laid whole on an original, witnesses.
+
+    Parameters
+    ----------
+    check : dict, from :func:`pipeline.orchestrate.attribute.check_asset`
+    deep : bool
+        Whether the check could run the registration's deep steps.
+
+    Returns
+    -------
+    dict of str -> bool
+        Per original registered (its sha256): True where a registration
+        laid at least :data:`HOLD_FIT` of the suspect within 3 spacings of
+        it and on its surface (the registration's ``lies_on``; not known
+        counts as on): it may hold the surface. False where none did and the
+        deep steps were allowed (near it but off its surface, as on a sparse
+        original's wide band, counts as off). Originals left unscored
+        or not found, and those the quick steps alone placed without
+        laying the suspect on them, witness nothing.
+    """
+    out = {}
+    for g in check["groups"]:
+        reg = g["registration"]
+        on = reg.get("fitness", 0.0) >= HOLD_FIT and reg.get("lies_on") is not False
+        if on or deep:
+            out[g["original_sha256"]] = out.get(g["original_sha256"], False) or on
+    return out
+
+
+def held_by(records, sampling=None):
+    """Whether an original holds another's surface, by the witnesses of the pair (:func:`holding_of`, as kept).
+
+    A sparser copy is judged more leniently: the registration takes its
+    overlap at three of the copy's own spacings when choosing a pose, and
+    its roughness, over wider neighbourhoods, widens what ``lies_on``
+    allows. So a witness that lay on it nowhere speaks only for copies
+    about as dense as it, or denser.
+
+    Parameters
+    ----------
+    records : list of dict, or None
+        ``held`` and ``sampling`` (the witness's spacing over the whole
+        original's) of each witness; None: a record could not be read.
+    sampling : float, optional
+        The suspect's, likewise; None: no witness that lay on it nowhere counts.
+
+    Returns
+    -------
+    bool or None
+        True when any witness lay on it; False when one that lay on it
+        nowhere is at least ``sampling`` / :data:`SAMPLING_TIE` (and none lay
+        on it); None when there is none of either, or one cannot be read.
+    """
+    if not records:
+        return None
+    found = [r.get("held") if isinstance(r, dict) else None for r in records]
+    if any(h is not True and h is not False for h in found):
+        return None
+    if any(found):
+        return True
+    if sampling is None:
+        return None
+    about = [r.get("sampling") for r in records]
+    return False if any(isinstance(w, (int, float)) and w >= sampling / SAMPLING_TIE for w in about) else None
+
+
+def holdings(store, whole, others, settings):
+    """Per candidate asset, whether its originals hold the surface of the original ``whole`` names.
+
+    Parameters
+    ----------
+    store : str or Path
+        The basis store.
+    whole : dict, from :func:`whole_original`
+    others : dict of asset key -> iterable of str
+        The sha256 of each original of the asset that a check would register.
+    settings : str or None
+        :func:`witness_settings`; None: no witness is read.
+
+    Returns
+    -------
+    dict of asset key -> bool or None
+        True when a witness lay on any of its originals; False when every
+        one of them has a witness that lay on it nowhere (:func:`held_by`);
+        None otherwise.
+    """
+    out = {}
+    for a, shas in others.items():
+        found = [None if settings is None else
+                 held_by(read_holdings(store, whole["sha256"], sha, settings), whole["sampling"]) for sha in shas]
+        out[a] = True if True in found else (False if found and all(h is False for h in found) else None)
+    return out
+
+
+def witness(store, whole, check, deep, suspect_sha256, settings):
+    """Keep what one check witnessed (:func:`holding_of`) of a suspect laid whole on an original.
+
+    A witness that cannot be kept (a store and stand-in that refuse) is
+    reported on stderr and dropped: it only spares later checks.
+
+    Parameters
+    ----------
+    store : str or Path
+        The basis store.
+    whole : dict, from :func:`whole_original`
+    check : dict, from :func:`pipeline.orchestrate.attribute.check_asset`
+        A check of another asset, after the whole one.
+    deep : bool
+        Whether that check could run the deep steps.
+    suspect_sha256 : str
+    settings : str or None
+        :func:`witness_settings`; None: nothing is kept.
+
+    Returns
+    -------
+    dict of str -> bool
+        :func:`holding_of` of the check.
+    """
+    seen = holding_of(check, deep)
+    if settings is None:
+        return seen
+    now = datetime.now(timezone.utc).isoformat(timespec="seconds")
+    for sha, held in seen.items():
+        fits = [g["registration"].get("fitness", 0.0) for g in check["groups"] if g["original_sha256"] == sha]
+        record = {"held": held, "fitness": max(fits), "sampling": whole["sampling"], "asset_key": check["asset_key"],
+                  "original_sha256": sha, "whole_asset_key": whole["asset_key"], "whole_sha256": whole["sha256"],
+                  "witness_sha256": suspect_sha256, "recorded_at": now, "format": HOLDING_FORMAT}
+        try:
+            record_holding(store, whole["sha256"], sha, settings, suspect_sha256, record)
+        except (OSError, InputError) as exc:
+            print(f"[pointmark] a witness of {check['asset_key']} was not kept: {exc}", file=sys.stderr, flush=True)
+    return seen
 
 
 def whole_may_stop(stages, deep_votes, deep_shape):

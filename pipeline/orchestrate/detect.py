@@ -21,8 +21,8 @@ from ..io.ledger import Ledger
 from ..io.pointcloud import InputError, read_points, sha256_file
 from ..kernels.descriptor import d2_descriptor
 from .attribute import check_asset, decide, held_rows, laid_whole, original_files, unheld_copies, unheld_summary
-from .candidates import (after_whole, build_index, candidates, cascade, load_index, planned_recipients, triage,
-                         votes_without, whole_may_stop)
+from .candidates import (after_whole, build_index, candidates, cascade, holdings, load_index, planned_recipients,
+                         triage, votes_without, whole_may_stop, whole_original, witness, witness_settings)
 
 __all__ = ["detect_from_ledger", "candidate_groups"]
 
@@ -87,25 +87,35 @@ def _check_in_order(suspect, candidates, stages, groups, materials, store, detec
     triage's from :func:`_rank`, once a check laid the suspect whole on an
     original)
     included, so neither stopping early nor the cascade adds a chance to
-    accuse.  The result holds ``seconds_ranked_again``, what :func:`votes_without` took (0 when not called).
+    accuse.  Once a check laid the suspect whole, the witnesses kept in ``store`` take part in that
+    staging, and each later check is kept as one (:func:`pipeline.orchestrate.candidates.witness`).
+    The result holds ``seconds_ranked_again``, what :func:`votes_without` took (0 when not called).
     """
 
     planned = planned_recipients([groups[c] for c in candidates], materials)
-    checks, stages, whole, ranked_again = [], dict(stages), False, 0.0
+    checks, stages, whole, ranked_again = [], dict(stages), None, 0.0
+    witnessing = witness_settings(detect_params)
     for i, c in enumerate(candidates):
         if stages[c] is None:
             continue
         checks.append(check_asset(suspect, groups[c], materials, store, detect_params, deep=stages[c] == "deep"))
+        if whole is not None:       # a check after the suspect was laid whole: what it witnessed is kept
+            witness(store, whole, checks[-1], stages[c] == "deep", sha256_file(suspect), witnessing)
         if decide(checks, detect_params.epsilon, planned=planned)["accused"]:
             break
         rest = {k: stages[k] for k in candidates[i + 1:]}
-        if not whole and shapes and shapes.get("index") and laid_whole(checks[-1]) and whole_may_stop(rest, *gates[:2]):
-            whole = True
-            named = {v: k for k, v in shapes["keys"].items()}
-            again = votes_without(suspect, shapes["index"], None, named[c], gates[2])
-            ranked_again = again["seconds"]
-            without = None if again["votes"] is None else {shapes["keys"][k]: v for k, v in again["votes"].items()}
-            stages.update(after_whole(shapes, rest, c, *gates[:2], without))
+        if (whole is None and shapes and shapes.get("index") and laid_whole(checks[-1])
+                and whole_may_stop(rest, *gates[:2])):
+            whole = whole_original(checks[-1])
+            held = holdings(store, whole, {k: {r["source_sha256"] for r in groups[k]} for k, s in rest.items() if s},
+                            witnessing)
+            without = {}                # not ranked where every candidate left was witnessed before
+            if not all(h is not None for h in held.values()):
+                named = {v: k for k, v in shapes["keys"].items()}
+                again = votes_without(suspect, shapes["index"], None, named[c], gates[2])
+                ranked_again = again["seconds"]
+                without = None if again["votes"] is None else {shapes["keys"][k]: v for k, v in again["votes"].items()}
+            stages.update(after_whole(shapes, rest, c, *gates[:2], without, held))
     return {**decide(checks, detect_params.epsilon, planned=planned), "checks": checks,
             "seconds_ranked_again": ranked_again}
 

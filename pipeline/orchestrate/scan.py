@@ -78,8 +78,8 @@ from ..io.pointcloud import InputError, atomic_write_bytes, read_points, sha256_
 from ..kernels.descriptor import d2_descriptor
 from .attribute import (check_asset, decide, held_rows, laid_whole, original_files, params_from_row, unheld_copies,
                         unheld_summary)
-from .candidates import (after_whole, build_index, candidates, cascade, load_index, planned_recipients, triage,
-                         votes_without, whole_may_stop)
+from .candidates import (after_whole, build_index, candidates, cascade, holdings, load_index, planned_recipients,
+                         triage, votes_without, whole_may_stop, whole_original, witness, witness_settings)
 from .progress import Bar, Progress
 from .reference import load_reference
 
@@ -301,6 +301,7 @@ class _Work:
         self.state, self.previous, self.descriptors = state, previous, descriptors
         self.detect_params = config_mod.detect_params(cfg)
         *self.gates, self.twin_shape = config_mod.cascade_gates(cfg)
+        self.witnessing = witness_settings(self.detect_params)
         # absolute paths: a worker of an existing cluster has its own working directory; the index's
         # hash, taken once here, spares each triage reading and hashing the index again
         self.index = (os.path.abspath(index_path), sha256_file(index_path)) if index_path else (None, None)
@@ -377,15 +378,26 @@ class _Work:
             self._finished(info)
 
     def _checked(self, info, fut):
+        stage = info.pop("stage")
         if fut.status == "finished":
             info["checks"].append(fut.result())
+            if "whole" in info:         # a check after the suspect was laid whole: what it witnessed is kept
+                witness(self.ref["store"], info["whole_original"], fut.result(), stage == "deep", info["sha256"],
+                        self.witnessing)
         else:
             info["errors"].append(_text(fut.exception()))
         matched = decide(info["checks"], self.detect_params.epsilon, _prior(info), info["planned"])["accused"]
         if (not matched and "whole" not in info and self.index[0] and info["checks"] and laid_whole(info["checks"][-1])
                 and whole_may_stop({a: s for a, _, _, s in info["queue"]}, *self.gates[:2])):
             # laid whole on one original: which other candidates may hold its surface
-            info["whole"] = info["checks"][-1]["asset_key"]
+            info["whole_original"] = whole_original(info["checks"][-1])
+            info["whole"] = info["whole_original"]["asset_key"]
+            info["held"] = holdings(self.ref["store"], info["whole_original"],
+                                    {a: {r["source_sha256"] for r in rows} for a, rows, _, s in info["queue"] if s},
+                                    self.witnessing)
+            if all(h is not None for h in info["held"].values()):     # each one witnessed before: not ranked
+                self._after_whole(info, None)
+                return
             fut = self.client.submit(votes_without, os.path.abspath(info["path"]), *self.index, info["whole"],
                                      self.twin_shape, pure=False, priority=1)
             self.shared[fut] = info
@@ -402,14 +414,20 @@ class _Work:
             print(f"[pointmark] scan: {plain_text(info['path'])}: {verdict}", file=sys.stderr, flush=True)
 
     def _after_whole(self, info, fut):
-        """The queue once a check laid the suspect whole on an original (:func:`after_whole`); the
-        votes without it unknown (the task failed): every stage kept."""
-        without = None
-        if fut.status == "finished":
+        """The queue once a check laid the suspect whole on an original (:func:`after_whole`).
+
+        ``fut`` is the ranking without that original (:func:`votes_without`); where it failed,
+        every stage is kept that no witness decides.  None: every candidate left was witnessed
+        before, and it was not ranked.
+        """
+        without = {} if fut is None else None
+        if fut is not None and fut.status == "finished":
             without = fut.result()["votes"]
             info["seconds"] += fut.result()["seconds"]       # counted with the candidate search
-        stage = after_whole(info, {a: s for a, _, _, s in info["queue"]}, info["whole"], *self.gates[:2], without)
+        stage = after_whole(info, {a: s for a, _, _, s in info["queue"]}, info["whole"], *self.gates[:2], without,
+                            info["held"])
         info["stopped_whole"] = sum(stage[a] is None for a, _, _, _ in info["queue"])
+        info["stopped_held"] = sum(stage[a] is None and info["held"].get(a) is False for a, _, _, _ in info["queue"])
         info["stopped"] += info["stopped_whole"]
         info["queue"] = [(a, rows, places, stage[a]) for a, rows, places, _ in info["queue"] if stage[a] is not None]
         if not self._submit_next(info):
@@ -424,6 +442,7 @@ class _Work:
         if not info["queue"]:
             return False
         _, rows, places, stage = info["queue"].pop(0)
+        info["stage"] = stage
         fut = self.client.submit(check_asset, os.path.abspath(info["path"]), rows, self.ref["materials"],
                                  os.path.abspath(self.ref["store"]), self.detect_params,
                                  places=[os.path.abspath(p) for p in places], deep=stage == "deep", pure=False,
@@ -633,6 +652,9 @@ def _finish(out, versions, info, epsilon, store, keys_held):
         if info.get("stopped_whole"):
             why += (f"; or, the suspect lying whole on {info['whole']}'s original with nothing beside it, neither "
                     f"of its shape nor holding its surface")
+        if info.get("stopped_held"):
+            why += (f" ({info['stopped_held']} of them registered before on a copy laid whole on that original, "
+                    f"which lay on them nowhere)")
         notes.append(f"{stopped} candidate original(s) stopped by the cascade: {why}; their recipients count "
                      f"in the threshold")
     regs = [g["registration"] for c in info["checks"] for g in c["groups"]]

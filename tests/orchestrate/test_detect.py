@@ -203,6 +203,14 @@ def test_a_part_of_one_asset_lying_on_another_asset_cut_from_it_names_the_first(
     write_array(tmp_path, "leak", attacks.apply_chain(marked[:3000], [("random_similarity", None),
                                                                      ("shuffle", None)], 8), "ply")
     cfg = config.load_config(None, [f"detection.{k}={v}" for k, v in SMALL_DETECTION.items()])
+    # first an unmarked copy of the blob: laid whole on its original, then registered on the scene, where
+    # it lies (the scene holds its surface); that witness must keep the scene's deep steps for the leak
+    write_array(tmp_path, "unmarked", attacks.apply_chain(blob, [("random_similarity", None), ("shuffle", None)], 9),
+                "ply")
+    innocent = detect_from_ledger(tmp_path / "unmarked.ply", job.manifests, SECRET.encode(), config.detect_params(cfg))
+    assert innocent["verdict"] == "no match" and innocent["n_candidates_checked"] == 2, innocent
+    witnesses = [json.loads(p.read_text()) for p in (job.manifests / "bases").glob("holdings/*/*/*.json")]
+    assert [(w["whole_asset_key"], w["asset_key"], w["held"]) for w in witnesses] == [("blob", "scene", True)]
     out = detect_from_ledger(tmp_path / "leak.ply", job.manifests, SECRET.encode(), config.detect_params(cfg))
     assert out["candidates"][0] == "blob" and out["n_candidates_checked"] == 2, out
     assert out["verdict"] == "match" and [(a["asset_key"], a["recipient"]) for a in out["accused"]] == [("scene", "bob")]

@@ -80,6 +80,100 @@ def test_a_suspect_laid_whole_on_one_original_keeps_twins_and_whole_look_alikes_
     assert after_whole(info, stages, "w", 0.03, 0.06, None) == stages
 
 
+def test_what_earlier_copies_laid_whole_witnessed_decides_before_the_votes_and_twins_stay_quick():
+    info = {"ranking": ["w", "n", "c", "t", "h", "far"], "distances": [0.0, 0.05, 0.04, 0.2, 0.25, 0.3],
+            "whole_distances": [0.0, 0.05, 0.3, 0.2, 0.5, 0.3], "twins": {"w": [["t", 0.028]]}}
+    stages = {"n": "deep", "c": "deep", "t": "deep", "h": "deep", "far": "deep"}
+    few = {"n": 0.0, "c": 0.0, "t": 0.5, "h": 0.04, "far": 0.01}
+    before = after_whole(info, stages, "w", 0.03, 0.06, few)
+    assert before == {"n": "quick", "c": "deep", "t": "quick", "h": "deep", "far": None}
+    # lay on nowhere: not registered, votes or cut views notwithstanding; lay on: kept as the cascade had it
+    held = {"c": False, "h": False, "far": True, "n": None, "t": False}
+    assert after_whole(info, stages, "w", 0.03, 0.06, few, held) == {
+        "n": "quick", "c": None, "t": "quick", "h": None, "far": "deep"}
+    # not ranked, every one witnessed ({}): twins quick, then the witnesses; one not witnessed goes on
+    assert after_whole(info, stages, "w", 0.03, 0.06, {}, held) == {
+        "n": "deep", "c": None, "t": "quick", "h": None, "far": "deep"}
+    # the votes unknown (the ranking failed): the witnesses alone, a twin's stage kept unless one decides it
+    assert after_whole(info, stages, "w", 0.03, 0.06, None, held) == {
+        "n": "deep", "c": None, "t": None, "h": None, "far": "deep"}
+    assert after_whole(info, stages, "w", 0.03, 0.06, None, {}) == stages
+    # the cascade off: nothing stopped, whatever was witnessed
+    assert after_whole(info, stages, "w", None, 0.06, few, held) == stages
+
+
+def _check(*fits, lies_on=None, shas=None):
+    shas = shas or ["b" * 64] * len(fits)
+    return {"asset_key": "b", "groups": [{"registration": {"fitness": f, "lies_on": lies_on}, "original_sha256": sha}
+                                         for f, sha in zip(fits, shas)]}
+
+
+def test_a_check_witnesses_per_original_holding_by_fitness_and_surface_and_nowhere_only_when_it_went_deep():
+    from pipeline.orchestrate.candidates import HOLD_FIT, held_by, holding_of
+
+    b, c = "b" * 64, "c" * 64
+    assert holding_of(_check(0.2, HOLD_FIT), deep=False) == {b: True}          # any registration that lay on it
+    assert holding_of(_check(0.2, HOLD_FIT, lies_on=True), deep=False) == {b: True}
+    assert holding_of(_check(0.2, 0.3), deep=True) == {b: False}
+    assert holding_of(_check(0.2, 0.3), deep=False) == {}                       # the quick steps alone: nothing
+    assert holding_of(_check(), deep=True) == {}                                # nothing registered
+    # near the original, but off its surface (a sparse original's wide band): on it nowhere
+    assert holding_of(_check(0.99, lies_on=False), deep=True) == {b: False}
+    # an asset's two originals (a revision) are witnessed apart
+    assert holding_of(_check(0.2, 0.9, shas=[b, c]), deep=True) == {b: False, c: True}
+    assert held_by([], 1.0) is None and held_by(None, 1.0) is None
+    assert held_by([{"held": False, "sampling": 1.0}, {"held": False, "sampling": 1.1}], 1.0) is False
+    assert held_by([{"held": False, "sampling": 1.0}, {"held": True}], 1.0) is True   # one that lay on it is enough
+    assert held_by([{"held": True}], None) is True
+    assert held_by([{"held": False, "sampling": 1.0}, {"held": "no"}], 1.0) is None   # a record not understood
+    assert held_by([{"held": False, "sampling": 1.0}, ["x"]], 1.0) is None
+    # a sparser copy is judged more leniently: a denser witness's "nowhere" does not speak for it
+    assert held_by([{"held": False, "sampling": 1.0}], 3.0) is None
+    assert held_by([{"held": False, "sampling": 1.0}, {"held": False, "sampling": 3.2}], 3.0) is False
+    assert held_by([{"held": False, "sampling": 3.0}], 1.0) is False
+    assert held_by([{"held": False, "sampling": None}], 1.0) is None
+    assert held_by([{"held": False, "sampling": 1.0}], None) is None
+
+
+def test_witnesses_are_kept_per_pair_of_originals_and_settings_never_replaced_and_read_back(tmp_path):
+    from types import SimpleNamespace
+
+    from pipeline.io.basis_store import read_holdings
+    from pipeline.orchestrate.candidates import holdings, witness, witness_settings
+
+    whole = {"asset_key": "w", "sha256": "a" * 64, "sampling": 1.0}
+    b, c = "b" * 64, "c" * 64
+    settings = witness_settings(SimpleNamespace(registration="robust", ransac_iterations=20000,
+                                                search_rotations=1000, search_poses=48))
+    assert witness_settings(SimpleNamespace(registration="paper")) is None
+    assert holdings(tmp_path, whole, {"b": {b}}, settings) == {"b": None}
+    assert witness(tmp_path, whole, _check(0.1), True, "1" * 64, settings) == {b: False}
+    assert holdings(tmp_path, whole, {"b": {b}}, settings) == {"b": False}
+    assert holdings(tmp_path, {**whole, "sampling": 2.0}, {"b": {b}}, settings) == {"b": None}   # a sparser suspect
+    # the asset revised: its new original has no witness, so the asset is not decided
+    assert holdings(tmp_path, whole, {"b": {b, c}}, settings) == {"b": None}
+    # the same witness again, now saying otherwise: the first record stands
+    assert witness(tmp_path, whole, _check(0.9), True, "1" * 64, settings) == {b: True}
+    assert holdings(tmp_path, whole, {"b": {b}}, settings) == {"b": False}
+    # another witness that lay on it: held; neither record is replaced
+    witness(tmp_path, whole, _check(0.9), True, "2" * 64, settings)
+    assert holdings(tmp_path, whole, {"b": {b}}, settings) == {"b": True}
+    records = read_holdings(tmp_path, whole["sha256"], b, settings)
+    assert sorted(r["held"] for r in records) == [False, True]
+    assert {r["witness_sha256"] for r in records} == {"1" * 64, "2" * 64}
+    assert {(r["whole_asset_key"], r["asset_key"], r["original_sha256"]) for r in records} == {("w", "b", b)}
+    # the other way round, other settings, another whole original: no witness yet
+    assert holdings(tmp_path, {**whole, "sha256": b}, {"w": {"a" * 64}}, settings) == {"w": None}
+    assert holdings(tmp_path, whole, {"b": {b}}, "f" * 64 if settings[0] != "f" else "e" * 64) == {"b": None}
+    assert holdings(tmp_path, {**whole, "sha256": "d" * 64}, {"b": {b}}, settings) == {"b": None}
+    assert holdings(tmp_path, whole, {"b": {b}}, None) == {"b": None}
+    assert witness(tmp_path, whole, _check(0.1), True, "3" * 64, None) == {b: False}       # nothing kept
+    assert len(read_holdings(tmp_path, whole["sha256"], b, settings)) == 2
+    # a record that cannot be parsed: unknown, never "lay on it nowhere"
+    (next(tmp_path.glob("holdings/*/*/*.json")).parent / "4.json").write_text("{not json")
+    assert holdings(tmp_path, whole, {"b": {b}}, settings) == {"b": None}
+
+
 def test_the_index_is_kept_by_its_bytes_hash_and_a_changed_file_is_never_served_stale(tmp_path):
     import numpy as np
     import pytest

@@ -7,6 +7,7 @@ in-process Dask cluster; the feature index a first scan builds is kept for the s
 (``ScanIndexes``).
 """
 
+import json
 import os
 import shutil
 from pathlib import Path
@@ -254,6 +255,17 @@ def test_in_a_catalogue_of_two_an_original_laid_whole_leaves_the_other_asset_its
     assert row["verdict"] == "no match" and row["n_checked"] == 4 and row["n_stopped"] == 0, row
     assert row["seconds_deep_registration"] > 0.0
     assert latest["found.ply"]["recipient"] == "bob"
+    # that deep check witnessed that the blob's surface lies nowhere on the torus (kept in the basis
+    # store): another copy laid whole on the blob's original is not registered on the torus again
+    witnesses = [json.loads(p.read_text()) for p in (tmp / "out" / "manifests" / "bases").glob("holdings/*/*/*.json")]
+    assert [(w["whole_asset_key"], w["asset_key"], w["held"]) for w in witnesses] == [("asset-0", "asset-1", False)]
+    assert witnesses[0]["witness_sha256"] == row["suspect_sha256"]
+    write_array(tmp / "suspects", "own-again", attacks.apply_chain(original, [("random_similarity", None),
+                                                                            ("shuffle", None)], 5), "ply")
+    assert scan(tmp).returncode == 0
+    again = _latest(tmp)["own-again.ply"]
+    assert again["verdict"] == "no match" and again["n_checked"] == 4 and again["n_stopped"] == 1, again
+    assert again["seconds_deep_registration"] == 0.0 and "registered before" in again["note"], again
 
 
 @pytest.fixture()
