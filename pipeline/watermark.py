@@ -689,8 +689,9 @@ def estimate_differences(suspect, reference, specs, bases, detect_params, params
         (method, scale, fitness and coverage within 3 spacings, residual,
         rotation, translation, ``failed`` when fitness or coverage is
         under :data:`REGISTERED`; at the chosen pose also ``lies_on``
-        (:func:`lies_on`), ``whole`` (:func:`laid_whole`) and, where whole,
-        ``sampling``: the suspect's median spacing there over the original's), and ``other_poses``: the same three for
+        (:func:`lies_on`; None under half the suspect within 3 spacings),
+        ``whole`` (:func:`laid_whole`) and, where whole, ``sampling``: the
+        suspect's median spacing there over the original's), and ``other_poses``: the same three for
         each other pose that fits about as well (a part of a near-symmetric
         shape, :func:`register`; empty unless ``every_pose``), which a
         fingerprint reader scores too and counts.
@@ -719,7 +720,9 @@ def estimate_differences(suspect, reference, specs, bases, detect_params, params
         record = _registration_record(pose, fitness, coverage, reference, detect_params)
         if chosen:
             step = float(np.median(spacing))
-            record["lies_on"] = lies_on(suspect, tree, pose, step, normals)
+            # under half the suspect within 3 spacings it cannot lie on the surface: not measured (None)
+            record["lies_on"] = (lies_on(suspect, tree, pose, step, normals)
+                                 if fitness >= registration.POSES_FIT else None)
             record["whole"] = bool(record["lies_on"]) and _covers_whole(len(suspect), fitness, coverage)
             if record["whole"]:       # the suspect's own spacing at this pose, in the original's
                 record["sampling"] = _own_spacing(suspect) * pose.scale / step
@@ -754,15 +757,11 @@ def laid_whole(suspect, tree, pose, spacing, fitness, coverage, normals=None):
 
     Parameters
     ----------
-    suspect : (n, 3) float
-    tree : NearestTree of the original (m, 3)
-    pose : registration.Similarity
-    spacing : float
-        Median nearest-neighbour distance of the original.
+    suspect, tree, pose, spacing, normals
+        As for :func:`lies_on`.
     fitness, coverage : float
         Share of the posed suspect within 3 spacings of the original, and of
         the original within 3 spacings of it (:func:`registration.overlap`).
-    normals : (m, 3) float, optional
 
     Returns
     -------

@@ -173,11 +173,11 @@ def write_file(folder, relative, data):
     return path
 
 
-def _holding_folder(whole, other, effort):
-    return f"holdings/{whole[:32]}/{other[:32]}-{effort[:16]}"
+def _holding_folder(whole, other, settings):
+    return f"holdings/{whole[:32]}/{other[:32]}-{settings[:16]}"
 
 
-def record_holding(folder, whole, other, effort, witness, record):
+def record_holding(folder, whole, other, settings, witness, record):
     """Keep one witness of whether ``other``'s originals hold the surface of ``whole``'s.
 
     A record is a small JSON file per witness (a suspect laid whole on
@@ -189,8 +189,8 @@ def record_holding(folder, whole, other, effort, witness, record):
     folder : str or Path
         The basis store.
     whole, other : str
-        Hex identities of the two assets' originals (sha256 of their bytes).
-    effort : str
+        The sha256 of the two originals' bytes.
+    settings : str
         Hex digest of the registration's settings the witness was made with.
     witness : str
         The suspect's sha256.
@@ -202,13 +202,13 @@ def record_holding(folder, whole, other, effort, witness, record):
     pathlib.Path or None
         Where it was written; None when this witness was recorded before.
     """
-    relative = f"{_holding_folder(whole, other, effort)}/{witness[:32]}.json"
+    relative = f"{_holding_folder(whole, other, settings)}/{witness[:32]}.json"
     if find_file(folder, relative):
         return None
     return write_file(folder, relative, json.dumps(record, sort_keys=True).encode())
 
 
-def read_holdings(folder, whole, other, effort):
+def read_holdings(folder, whole, other, settings):
     """Every witness recorded by :func:`record_holding` for the pair, as dicts.
 
     Returns
@@ -217,7 +217,7 @@ def read_holdings(folder, whole, other, effort):
         None when a record cannot be read or parsed: what it said is unknown.
     """
     records = []
-    for path in find_files(folder, f"{_holding_folder(whole, other, effort)}/*.json"):
+    for path in find_files(folder, f"{_holding_folder(whole, other, settings)}/*.json"):
         try:
             records.append(json.loads(read_file(path)))
         except (OSError, ValueError):

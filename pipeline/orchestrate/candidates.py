@@ -29,6 +29,7 @@ import numpy as np
 from ..io.basis_store import find_file, find_files, map_faiss, read_file, read_holdings, record_holding, write_file
 from ..io.pointcloud import InputError, read_points, sha256_file
 from ..kernels.descriptor import d2_descriptor, descriptor_distance
+from ..kernels.registration import POSES_FIT
 
 __all__ = ["triage", "candidates", "cascade", "after_whole", "votes_without", "whole_may_stop", "witness_settings",
            "whole_original", "holding_of", "held_by", "holdings", "witness", "build_index", "load_index",
@@ -303,7 +304,8 @@ def after_whole(info, stages, whole, deep_votes, deep_shape, without, held=None)
     return out
 
 
-HOLD_FIT = 0.5        # least share of a copy laid whole on one original lying on another, for that one to hold it
+HOLD_FIT = POSES_FIT  # least share of a copy laid whole on one original near another, for that one to hold it
+                      # (where the registration record measures ``lies_on`` at all)
 HOLDING_FORMAT = 1    # what a witness record means; a new format starts the records afresh
 SAMPLING_TIE = 1.25   # a witness about as sparse as a suspect: its spacing at least the suspect's / this
 

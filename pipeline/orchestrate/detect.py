@@ -100,13 +100,13 @@ def _check_in_order(suspect, candidates, stages, groups, materials, store, detec
             continue
         checks.append(check_asset(suspect, groups[c], materials, store, detect_params, deep=stages[c] == "deep"))
         if whole is not None:       # a check after the suspect was laid whole: what it witnessed is kept
-            witness(store, whole, checks[-1], stages[c] == "deep", sha256_file(suspect), witnessing)
+            witness(store, whole, checks[-1], stages[c] == "deep", suspect_sha256, witnessing)
         if decide(checks, detect_params.epsilon, planned=planned)["accused"]:
             break
         rest = {k: stages[k] for k in candidates[i + 1:]}
         if (whole is None and shapes and shapes.get("index") and laid_whole(checks[-1])
                 and whole_may_stop(rest, *gates[:2])):
-            whole = whole_original(checks[-1])
+            whole, suspect_sha256 = whole_original(checks[-1]), sha256_file(suspect)
             held = holdings(store, whole, {k: {r["source_sha256"] for r in groups[k]} for k, s in rest.items() if s},
                             witnessing)
             without = {}                # not ranked where every candidate left was witnessed before
