@@ -1033,6 +1033,9 @@ def register(suspect, reference, spacing, detect_params, tree, normals=None, *, 
 
 POLISH_WIDTHS = (3.0, 1.5)   # fixed ICP cuts (spacings) polishing a whole copy's registration
 POLISH_ITERATIONS = 60       # most ICP steps per cut
+SCREEN_ITERATIONS = 3        # ICP steps (at the first cut) a turned start gets before it is screened
+SCREEN_FITNESS = 3 * registration.POSE_FITNESS_TIE    # then: fitness at most this below the chosen pose's,
+SCREEN_RESIDUAL = 2 * registration.POSE_RESIDUAL_TIE  # and residual at most this times its own, to go on
 PART_SHAPE = 0.3         # most |log| difference of principal spreads for a part tried whole
 MAX_PARTS = 3            # most parts registered whole, the most original-like first
 
@@ -1045,9 +1048,12 @@ def _turned_poses(suspect, reference, found, spacing, tree, normals=None, most=1
     :func:`registration.axis_turns` is refined on at most ``most`` points,
     and so are the best turns about its fitted axis of revolution
     (:func:`registration.fine_turns`: the true turn is a dip about a degree
-    wide, and the principal axis of a scan can lie degrees off the axis);
-    those that fit about as well (:func:`registration.poses_alike`) are
-    refined on all.  Empty for an original without such an axis, and where
+    wide, and the principal axis of a scan can lie degrees off the axis).
+    Each gets :data:`SCREEN_ITERATIONS` ICP steps first, and goes on only
+    where it then fits within :data:`SCREEN_FITNESS` and
+    :data:`SCREEN_RESIDUAL` of ``found`` (turns 5 degrees apart leave one
+    near any pose that fits); those that fit about as well
+    (:func:`registration.poses_alike`) are refined on all.  Empty for an original without such an axis, and where
     ``found`` does not lay the suspect on it (:func:`registration.lies_on`).
     """
     sub = suspect[:: max(1, len(suspect) // most)]
@@ -1058,11 +1064,16 @@ def _turned_poses(suspect, reference, found, spacing, tree, normals=None, most=1
     anchor, direction, _ = _revolution_axis(reference, normals)
     starts += registration.fine_turns(sub, tree, found, anchor, direction, bound=3.0 * spacing)
 
-    def refined(points, start):
-        return registration.refine_part(points, tree, reference, start, spacing=spacing, widths=POLISH_WIDTHS,
-                                        iterations=POLISH_ITERATIONS)
+    def refined(points, start, widths=POLISH_WIDTHS, steps=POLISH_ITERATIONS):
+        return registration.refine_part(points, tree, reference, start, spacing=spacing, widths=widths,
+                                        iterations=steps)
 
-    alike = registration.poses_alike(sub, tree, sample, found, [refined(sub, s) for s in starts], spacing, normals)
+    # a few ICP steps first: only a turn that then fits nearly as well as ``found`` is refined in full
+    chosen = refined(sub, found, steps=0)
+    floor = max(chosen.residual, 1e-3 * spacing)
+    screened = [p for p in (refined(sub, s, POLISH_WIDTHS[:1], SCREEN_ITERATIONS) for s in starts)
+                if p.fitness >= chosen.fitness - SCREEN_FITNESS and p.residual <= SCREEN_RESIDUAL * floor]
+    alike = registration.poses_alike(sub, tree, sample, found, [refined(sub, p) for p in screened], spacing, normals)
     return registration.distinct_poses(suspect, found, [refined(suspect, p) for p in alike], spacing)
 
 
