@@ -1053,8 +1053,9 @@ def _turned_poses(suspect, reference, found, spacing, tree, normals=None, most=1
     where it then fits within :data:`SCREEN_FITNESS` and
     :data:`SCREEN_RESIDUAL` of ``found`` (turns 5 degrees apart leave one
     near any pose that fits); those that fit about as well
-    (:func:`registration.poses_alike`) are refined on all.  Empty for an original without such an axis, and where
-    ``found`` does not lay the suspect on it (:func:`registration.lies_on`).
+    (:func:`registration.poses_alike`) are refined on all.  Empty for an
+    original without such an axis, and where ``found`` does not lay the
+    suspect on it (:func:`registration.lies_on`).
     """
     sub = suspect[:: max(1, len(suspect) // most)]
     sample = _coverage_sample(reference)
