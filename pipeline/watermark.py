@@ -723,7 +723,7 @@ def estimate_differences(suspect, reference, specs, bases, detect_params, params
             # under half the suspect within 3 spacings it cannot lie on the surface: not measured (None)
             record["lies_on"] = (lies_on(suspect, tree, pose, step, normals)
                                  if fitness >= registration.POSES_FIT else None)
-            record["whole"] = bool(record["lies_on"]) and _covers_whole(len(suspect), fitness, coverage)
+            record["whole"] = laid_whole(len(suspect), fitness, coverage, record["lies_on"])
             if record["whole"]:       # the suspect's own spacing at this pose, in the original's
                 record["sampling"] = _own_spacing(suspect) * pose.scale / step
         return {"deltas": deltas, "support": support, "registration": record}
@@ -743,37 +743,32 @@ WHOLE_COVERAGE = 0.8  # least share of the original covered by such a copy
 LIES_ON_POINTS = 1500  # suspect points its distance to the surface is measured on
 
 
-def laid_whole(suspect, tree, pose, spacing, fitness, coverage, normals=None):
-    """Whether ``pose`` lays the whole suspect on the original, and it covers the original: the suspect is
+def laid_whole(n_points, fitness, coverage, on_surface):
+    """Whether a pose lays the whole suspect on the original, and it covers the original: the suspect is
     a copy of it whole (an unmarked original, a copy under another key) with nothing else beside it.
 
     At most :data:`WHOLE_OFF` suspect points lie beyond 3 spacings of the
     original, ``coverage`` is at least :data:`WHOLE_COVERAGE`, and the
-    suspect lies on the surface, not merely near it
-    (:func:`registration.lies_on`, which needs the original's normals:
-    without them, False).  A scan then checks the other candidates only
-    where they may hold that surface
+    suspect lies on the surface, not merely near it (:func:`lies_on`, which
+    needs the original's normals: without them, None, and so False).  A scan
+    then checks the other candidates only where they may hold that surface
     (:func:`pipeline.orchestrate.candidates.after_whole`).
 
     Parameters
     ----------
-    suspect, tree, pose, spacing, normals
-        As for :func:`lies_on`.
+    n_points : int
+        The suspect's points.
     fitness, coverage : float
         Share of the posed suspect within 3 spacings of the original, and of
         the original within 3 spacings of it (:func:`registration.overlap`).
+    on_surface : bool or None
+        :func:`lies_on` at that pose.
 
     Returns
     -------
     bool
     """
-    return normals is not None and _covers_whole(len(suspect), fitness, coverage) and bool(
-        lies_on(suspect, tree, pose, spacing, normals))
-
-
-def _covers_whole(n_points, fitness, coverage):
-    """At most :data:`WHOLE_OFF` of ``n_points`` off the original, and at least :data:`WHOLE_COVERAGE` of it covered."""
-    return coverage >= WHOLE_COVERAGE and n_points - round(fitness * n_points) <= WHOLE_OFF
+    return bool(on_surface) and coverage >= WHOLE_COVERAGE and n_points - round(fitness * n_points) <= WHOLE_OFF
 
 
 def lies_on(suspect, tree, pose, spacing, normals=None):
@@ -1069,7 +1064,8 @@ def _turned_poses(suspect, reference, found, spacing, tree, normals=None, most=1
         return registration.refine_part(points, tree, reference, start, spacing=spacing, widths=widths,
                                         iterations=steps)
 
-    # a few ICP steps first: only a turn that then fits nearly as well as ``found`` is refined in full
+    # a few ICP steps first: only a turn that then fits nearly as well as ``found`` (its fit on
+    # ``sub``: no step) is refined in full
     chosen = refined(sub, found, steps=0)
     floor = max(chosen.residual, 1e-3 * spacing)
     screened = [p for p in (refined(sub, s, POLISH_WIDTHS[:1], SCREEN_ITERATIONS) for s in starts)

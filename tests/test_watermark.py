@@ -237,12 +237,13 @@ def test_laid_whole_tells_a_whole_copy_from_a_part_a_copy_beside_something_and_a
     pose = registration.Similarity(np.eye(3), 1.0, np.zeros(3))
     rng = np.random.default_rng(0)
 
-    def whole(points):
+    def whole(points, normals=normals):
         fitness, coverage, _ = registration.overlap(points, tree, original[::4], 3.0 * spacing)
-        return watermark.laid_whole(points, tree, pose, spacing, fitness, coverage, normals)
+        on = watermark.lies_on(points, tree, pose, spacing, normals)
+        return watermark.laid_whole(len(points), fitness, coverage, on)
 
     assert whole(original[rng.permutation(len(original))])                       # shuffled, as issued
-    assert not watermark.laid_whole(original, tree, pose, spacing, 1.0, 1.0)      # no normals: not on the surface
+    assert not whole(original, normals=None)                                     # no normals: not on the surface
     assert whole(original[::2] + rng.normal(0, 0.3 * spacing, (2000, 3)))        # resampled, a little noise
     assert not whole(original[original[:, 0] < np.median(original[:, 0])])       # a half: covers too little
     far = original.max(axis=0) + 10 * spacing                                    # 16 points beyond: still whole

@@ -306,7 +306,7 @@ def test_a_mixed_folder_is_scanned_on_a_scheduler_started_apart_and_given_by_add
     for name, (path, chain) in leaks.items():
         write_array(tmp / "suspects", name, attacks.apply_chain(read_points(path).points,
                                                                 chain + [("shuffle", None)], rng), "ply")
-    # the stranger, a box, still takes the deep steps on the blob here (two assets: nothing is stopped)
+    # the stranger: a box, like no catalogue shape
     innocents = {"stranger": attacks.box(np.random.default_rng(99), 3000, sides=(3.0, 2.0, 1.0)) * 10,
                  "unmarked": attacks.apply_chain(read_points(tmp / "assets" / "asset-1.pcd").points,
                                                  [("random_similarity", None), ("shuffle", None)], rng)}
