@@ -178,9 +178,10 @@ def grow_clusters(points, seeds, sizes, *, on_touch, cover):
 
 
 def _push_neighbours(heap, path, i, dist, nbr, labels):
-    for d, j in zip(dist[i, 1:], nbr[i, 1:]):
+    # the row as Python numbers, one call each: the same floats and ints as element by element
+    for d, j in zip(dist[i, 1:].tolist(), nbr[i, 1:].tolist()):
         if labels[j] < 0:
-            heapq.heappush(heap, (path + float(d), int(j)))
+            heapq.heappush(heap, (path + d, j))
 
 
 def _grow_one(c, heap, labels, dist, nbr, on_touch):
