@@ -33,7 +33,7 @@ $(NPM_STAMP): package.json
 	@touch $(NPM_STAMP)
 
 # the package's bytecode written once (compileall writes it even under PYTHONDONTWRITEBYTECODE): each
-# test process, Dask worker and CLI run would otherwise compile the sources again (0.1-0.2 s each)
+# test process, Dask worker and CLI run would otherwise compile the sources again (about 0.3 s each)
 setup: $(STAMP) $(NPM_STAMP)
 	@$(PY) -m compileall -q pipeline
 

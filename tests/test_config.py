@@ -155,13 +155,13 @@ def test_a_code_longer_than_the_chips_is_refused_before_any_work(tmp_path):
 
 
 @functools.lru_cache(maxsize=2)
-def _blob_reference(basis_params):
-    """The 9,000-point demo blob's clusters and bases, once per basis parameters (the shipped configs share them)."""
+def _blob_reference(params):
+    """The 9,000-point demo blob and its reference under ``params``, once per parameters (demo and workflow share them)."""
     from pipeline.demo import procedural_shape
     from pipeline.watermark import compute_reference
 
     points = procedural_shape("blob", 9000, seed=1) * 100.0
-    return points, compute_reference(points, basis_params)
+    return points, compute_reference(points, params)
 
 
 @pytest.mark.parametrize("name", ["demo.yaml", "workflow.yaml", "default.yaml"])
@@ -173,13 +173,12 @@ def test_shipped_catalogue_configs_mark_at_the_papers_distance_to_the_surface(na
     import numpy as np
 
     from pipeline.kernels import keys
-    from pipeline.orchestrate.evaluate import _basis_params
     from pipeline.watermark import distortion, embed_reference
 
     params = replace(config.watermark_params(config.load_config(ROOT / "configs" / name)),
                      n_clusters=3, cluster_size=2000)          # the demo's clusters for every config
     paper = replace(params, beta=0.002, displacement="xyz", chip_layout="consecutive", code="repetition")
-    points, reference = _blob_reference(_basis_params(params, params.n_coefficients))
+    points, reference = _blob_reference(params)
     rng = np.random.default_rng(0)
     ratios = []
     for i in range(3):
