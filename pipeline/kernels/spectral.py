@@ -22,8 +22,11 @@ short basis.  The counts are proved, not trusted: each solve asks for one
 eigenvalue more than its interval holds, and exactly that one must fall
 outside, and the pairs' residuals ||K v - lambda v|| must be small.  Any
 failed check repeats the whole solve with one shift below zero (K is
-positive semi-definite).  Every shift-invert operator is a sparse LU factor
-in a symmetric minimum-degree order, which fills less than ARPACK's own.
+positive semi-definite).  That solve is proved too: the inertia just below
+its top eigenvalue must count exactly the pairs found there, else a copy of
+a repeated eigenvalue was missed and the dense solver answers.  Every
+shift-invert operator is a sparse LU factor in a symmetric minimum-degree
+order, which fills less than ARPACK's own.
 """
 
 from __future__ import annotations
@@ -36,6 +39,7 @@ from scipy.sparse.linalg import ArpackNoConvergence, LinearOperator, eigsh, splu
 __all__ = ["spectral_basis", "canonicalize", "probe_vector", "surviving_band"]
 
 DENSE_BELOW = 800       # clusters smaller than this use dense eigh
+DENSE_MAX = 5000        # the largest cluster a dense eigh may answer for an incomplete sparse solve (200 MB)
 GUARD = 8               # extra vectors so a degenerate space at the cut is whole
 _SHIFT = -1e-3          # shift-invert centre, below the zero eigenvalue
 PILOT = 24              # lowest eigenvalues from which the top of the band is extrapolated
@@ -43,6 +47,7 @@ SLICE = 96              # eigenvalues per slice of the band
 ORTHO_TOL = 1e-9        # largest |V^T V - I| accepted from vectors of separate slices
 RESIDUAL_TOL = 1e-8     # largest ||K v - lambda v|| accepted, relative to max(1, lambda_max)
 PIVOT = 0.01            # SuperLU keeps the diagonal pivot unless 100x smaller than its column's largest
+COUNT_GAP = 1e-6        # the count that proves a plain solve complete is taken this far (relative) below its top group
 
 
 def surviving_band(cluster_points, spacing, noise, gain):
@@ -137,8 +142,38 @@ def _lowest(laplacian, k):
                 return found
         except (ArpackNoConvergence, RuntimeError):   # (a singular factor) the plain shift below
             pass
-    return eigsh(laplacian, k=k, sigma=_SHIFT, which="LM", v0=v0, ncv=min(n, k + 100), tol=0.0,
-                 OPinv=_shift_invert(laplacian, _SHIFT))
+    values, vectors = eigsh(laplacian, k=k, sigma=_SHIFT, which="LM", v0=v0, ncv=min(n, k + 100), tol=0.0,
+                            OPinv=_shift_invert(laplacian, _SHIFT))
+    complete = _complete(laplacian, values)
+    if complete or (complete is None and n > DENSE_MAX):
+        return values, vectors          # proved; or not disproved, and too large for the dense solver
+    # Lanczos from one start vector can miss copies of a repeated eigenvalue, and which copies
+    # it finds then depends on ARPACK's random restarts, a state of the whole process: the
+    # basis would differ from one call to the next.  The dense solver finds them all.
+    if n > DENSE_MAX:
+        raise np.linalg.LinAlgError(f"the {k} lowest eigenvectors of a cluster of {n} points cannot be solved "
+                                    f"reproducibly (a repeated eigenvalue; the dense solver takes at most "
+                                    f"{DENSE_MAX} points): use smaller clusters")
+    return sl.eigh(laplacian.toarray(), subset_by_index=[0, k - 1])
+
+
+def _complete(laplacian, values, tie=1e-8):
+    """Whether ``values`` hold every eigenvalue below their top group (Sylvester's count).
+
+    The top group (eigenvalues within ``tie``, relative, of the largest) may
+    go on past the band; :data:`GUARD` keeps it off the vectors used.
+    Below it, the count just under the group must equal the values found
+    there: a copy of a repeated eigenvalue that Lanczos missed shows as one
+    more.  None when the factor pivoted or is singular (nothing proved).
+    """
+    values = np.sort(values)
+    low = values[values >= values[-1] - tie * max(1.0, abs(values[-1]))][0]
+    shift = low - COUNT_GAP * max(1.0, abs(low))
+    try:
+        count = _inertia(laplacian, shift)
+    except RuntimeError:          # a singular factor: an eigenvalue at the shift
+        return None
+    return None if count is None else count == int((values < shift).sum())
 
 
 def _sliced(laplacian, k, v0):
