@@ -24,7 +24,8 @@ outside, and the pairs' residuals ||K v - lambda v|| must be small.  Any
 failed check repeats the whole solve with one shift below zero (K is
 positive semi-definite).  That solve is proved too: the inertia just below
 its top eigenvalue must count exactly the pairs found there, else a copy of
-a repeated eigenvalue was missed and the dense solver answers.  Every
+a repeated eigenvalue was missed and the dense solver answers (up to
+``DENSE_MAX`` points; above, an error).  Every
 shift-invert operator is a sparse LU factor in a symmetric minimum-degree
 order, which fills less than ARPACK's own.
 """
@@ -41,6 +42,7 @@ __all__ = ["spectral_basis", "canonicalize", "probe_vector", "surviving_band"]
 DENSE_BELOW = 800       # clusters smaller than this use dense eigh
 DENSE_MAX = 5000        # the largest cluster a dense eigh may answer for an incomplete sparse solve (200 MB)
 GUARD = 8               # extra vectors so a degenerate space at the cut is whole
+DEGENERATE_TOL = 1e-8   # eigenvalues this close (relative to max(1, the largest)) form one eigenspace
 _SHIFT = -1e-3          # shift-invert centre, below the zero eigenvalue
 PILOT = 24              # lowest eigenvalues from which the top of the band is extrapolated
 SLICE = 96              # eigenvalues per slice of the band
@@ -101,7 +103,7 @@ def probe_vector(n, salt):
     return np.cos(i * 0.6180339887498949 * np.pi + salt * (1.0 + i) ** 0.5)
 
 
-def spectral_basis(laplacian, n_vectors, *, degenerate_tol=1e-8):
+def spectral_basis(laplacian, n_vectors, *, degenerate_tol=DEGENERATE_TOL):
     """The ``n_vectors`` lowest eigenpairs of a graph Laplacian, canonical.
 
     Parameters
@@ -147,6 +149,7 @@ def _lowest(laplacian, k):
     complete = _complete(laplacian, values)
     if complete or (complete is None and n > DENSE_MAX):
         return values, vectors          # proved; or not disproved, and too large for the dense solver
+    # (not proved, or disproved, up to DENSE_MAX points: the dense solver answers)
     # Lanczos from one start vector can miss copies of a repeated eigenvalue, and which copies
     # it finds then depends on ARPACK's random restarts, a state of the whole process: the
     # basis would differ from one call to the next.  The dense solver finds them all.
@@ -157,17 +160,17 @@ def _lowest(laplacian, k):
     return sl.eigh(laplacian.toarray(), subset_by_index=[0, k - 1])
 
 
-def _complete(laplacian, values, tie=1e-8):
+def _complete(laplacian, values):
     """Whether ``values`` hold every eigenvalue below their top group (Sylvester's count).
 
-    The top group (eigenvalues within ``tie``, relative, of the largest) may
-    go on past the band; :data:`GUARD` keeps it off the vectors used.
+    The top group (eigenvalues within :data:`DEGENERATE_TOL` of the largest)
+    may go on past the band; :data:`GUARD` keeps it off the vectors used.
     Below it, the count just under the group must equal the values found
     there: a copy of a repeated eigenvalue that Lanczos missed shows as one
     more.  None when the factor pivoted or is singular (nothing proved).
     """
     values = np.sort(values)
-    low = values[values >= values[-1] - tie * max(1.0, abs(values[-1]))][0]
+    low = values[values >= values[-1] - DEGENERATE_TOL * max(1.0, abs(values[-1]))][0]
     shift = low - COUNT_GAP * max(1.0, abs(low))
     try:
         count = _inertia(laplacian, shift)
@@ -291,7 +294,7 @@ def _band_top(laplacian, k, v0):
     return float(low[-1] * min(ratio, ratio ** float(np.clip(exponent, 0.5, 2.0))))
 
 
-def canonicalize(values, vectors, *, degenerate_tol=1e-8):
+def canonicalize(values, vectors, *, degenerate_tol=DEGENERATE_TOL):
     """Put eigenpairs in canonical order, in-space rotation and sign.
 
     Parameters

@@ -118,6 +118,26 @@ def test_a_solve_is_complete_only_when_the_count_below_its_top_group_matches():
     assert spectral._complete(k.tocsc(), np.append(np.delete(found, 30), lam[60])) is False   # and replaced
 
 
+@pytest.mark.parametrize("proved", [False, None])
+def test_a_plain_solve_not_proved_complete_is_the_dense_one_or_an_error_above_the_dense_limit(monkeypatch, proved):
+    # 308 vectors of 1,200 points: more than 1,200 // 6, so one plain solve; its count says it missed
+    # one (False), or cannot be taken (None)
+    from scipy.linalg import eigh
+
+    k = _laplacian(1200, rng=4)
+    monkeypatch.setattr(spectral, "_complete", lambda *a: proved)
+    values, basis = spectral_basis(k, 300)
+    v2, b2 = canonicalize(*eigh(k.toarray(), subset_by_index=[0, 307]))
+    assert np.array_equal(values, v2[:300]) and np.array_equal(basis, b2[:, :300])
+    monkeypatch.setattr(spectral, "DENSE_MAX", 1000)
+    if proved is None:           # nothing proved and too large for the dense solver: the solve stands
+        values, basis = spectral_basis(k, 300)
+        assert np.allclose(k @ basis, basis * values, atol=1e-7)
+    else:
+        with pytest.raises(np.linalg.LinAlgError, match="cluster of 1200 points cannot be solved reproducibly"):
+            spectral_basis(k, 300)
+
+
 def test_slices_whose_pairs_miss_the_eigenproblem_are_refused(monkeypatch):
     # orthonormal vectors that are not eigenvectors (a slice's pairs mixed by a small
     # rotation, as an inexact factor would leave them) pass the count and orthogonality
