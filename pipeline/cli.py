@@ -21,7 +21,7 @@ threads.pin()   # before NumPy loads BLAS: one thread per process, as on the wor
 
 import numpy as np  # noqa: E402
 
-from . import __version__, config as config_mod
+from . import __version__, allocator, config as config_mod
 from .io.basis_store import BasisStore
 from .io.gltf_tools import ToolError
 from .io.ledger import Ledger, LedgerError
@@ -257,6 +257,7 @@ def _publish(cloud, marked, out):
 
 
 def cmd_detect(args):
+    allocator.keep_freed_memory()   # the registration's temporaries, allocated and freed thousands of times
     if args.ledger:
         return cmd_detect_ledger(args)
     if not args.key_id:

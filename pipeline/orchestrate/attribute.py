@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..allocator import keep_freed_memory
 from ..io.basis_store import BasisStore
 from ..io.ledger import mac_ok
 from ..io.pointcloud import InputError, read_points, sha256_file
@@ -99,6 +100,7 @@ def check_asset(suspect_path, rows, materials, store, detect_params, *, places=(
     ReferenceMismatch
         The rebuilt reference differs from the one recorded at embedding.
     """
+    keep_freed_memory()     # the registration's temporaries, allocated and freed thousands of times
     files, unchecked = original_files(rows, places, store)
     suspect = read_points(suspect_path).points
     originals = {sha: read_points(path).points for sha, path in files.items()}

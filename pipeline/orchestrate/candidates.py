@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..allocator import keep_freed_memory
 from ..io.basis_store import find_file, find_files, map_faiss, read_file, read_holdings, record_holding, write_file
 from ..io.pointcloud import InputError, read_points, sha256_file
 from ..kernels.descriptor import d2_descriptor, descriptor_distance
@@ -103,6 +104,7 @@ def triage(suspect_path, descriptors, index_path, index_sha256=None, twin_shape=
     None: none), which :func:`cascade` lends their votes.
     """
     t0 = time.perf_counter()
+    keep_freed_memory()     # the descriptors' temporaries, allocated and freed per scale
     points = read_points(suspect_path).points
     if len(points) < MIN_POINTS:
         raise InputError(f"{suspect_path}: {len(points)} point(s): too few to hold a watermark (at least {MIN_POINTS})")
@@ -218,6 +220,7 @@ def votes_without(suspect_path, index_path, index_sha256, whole, twin_shape=None
         and ``seconds`` (this ranking's, the candidate search's too).
     """
     t0 = time.perf_counter()
+    keep_freed_memory()
     index = load_index(index_path, index_sha256)
     votes = None
     if whole in index.keys and len(index.keys) >= 3:

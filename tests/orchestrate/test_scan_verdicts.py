@@ -319,3 +319,9 @@ def test_a_mixed_folder_is_scanned_on_a_scheduler_started_apart_and_given_by_add
     assert named == {"found": ("match", "bob"), "leak-alice-1": ("match", "alice"), "leak-bob-0": ("match", "bob"),
                      "leak-alice-0": ("match", "alice"), "stranger": ("no match", None),
                      "unmarked": ("no match", None)}
+    # the workers it checked suspects on keep their freed memory, whatever environment their operator gave them
+    from distributed import Client
+
+    from pipeline.allocator import keeps_freed_memory
+    with Client(apart_scheduler, timeout="30s") as client:
+        assert set(client.run(keeps_freed_memory).values()) == {True}
