@@ -1,8 +1,8 @@
 """glibc's allocator told to keep freed memory for the next array, on the detection path.
 
-By default glibc hands every block over 128 KiB to its own ``mmap`` and
-gives it back when it is freed (Dask's workers are told to give back
-everything over 64 KiB).  Detection allocates and frees the same large
+By default glibc gives a block over 128 KiB (a threshold that rises as such
+blocks are freed, to at most 32 MB) its own ``mmap`` and gives it back when
+it is freed; Dask's workers are told to give back everything over 64 KiB.  Detection allocates and frees the same large
 temporaries thousands of times: descriptor products of 2,048 x 6,000, ICP
 distances, k-d tree answers.  On a virtual machine that returns freed guest
 memory to its host (free page reporting, as on this project's 2-core
