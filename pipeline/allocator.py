@@ -2,12 +2,12 @@
 
 By default glibc gives a block over 128 KiB (a threshold that rises as such
 blocks are freed, to at most 32 MB) its own ``mmap`` and gives it back when
-it is freed; Dask's workers are told to give back everything over 64 KiB.  Detection allocates and frees the same large
-temporaries thousands of times: descriptor products of 2,048 x 6,000, ICP
-distances, k-d tree answers.  On a virtual machine that returns freed guest
-memory to its host (free page reporting, as on this project's 2-core
-machines), touching such memory again costs about 10 ms per MB, 50 to 100
-times a page fault elsewhere.  Six unrelated suspects took 1,052 worker s
+it is freed; Dask's workers are told to give back everything over 64 KiB.
+Detection allocates and frees the same large temporaries thousands of times:
+descriptor products of 2,048 x 6,000, ICP distances, k-d tree answers.  On
+a virtual machine that returns freed guest memory to its host (free page
+reporting, as on this project's 2-core machines), touching such memory again
+costs about 10 ms per MB, 50 to 100 times a page fault elsewhere.  Six unrelated suspects took 1,052 worker s
 with Dask's setting and 785 s with this one, with the same scores
 (``bench/RESULTS.md``, "Freed memory kept where detection runs").
 

@@ -8,7 +8,8 @@ import sys
 
 import pytest
 
-pytestmark = pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="glibc's allocator only (elsewhere a no-op)")
+pytestmark = pytest.mark.skipif(platform.libc_ver()[0] != "glibc",
+                                reason="glibc's allocator only (elsewhere a no-op)")
 
 # resident memory after a 64 MB array (beyond glibc's largest threshold for a block of its own
 # mapping) is touched and freed, before and after keep_freed_memory; in a fresh process
