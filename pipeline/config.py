@@ -185,6 +185,10 @@ DETECTION = _section("Detection (paper, section 2.2, Extraction).", {
                            minimum=1, maximum=100_000),
     "search_poses": _p("integer", 48,
                        "Best poses of that search refined by ICP.", minimum=1, maximum=10_000),
+    "search_screen": _p("boolean", True,
+                        "Before that search, a coarse one of its own (an eighth of its cost) must lay the part "
+                        "on the original somewhere; where none does, the search is skipped (robust "
+                        "registration).  Calibrated on the leak benchmark."),
     "epsilon": _p("number", 1e-6,
                   "Largest probability of accusing any innocent recipient, per suspect: a recipient is "
                   "named only when its fingerprint score clears the threshold this sets for the number "
@@ -746,6 +750,7 @@ class DetectParams:
     ransac_iterations: int = _D["ransac_iterations"]   # the registration's effort on a suspect that is
     search_rotations: int = _D["search_rotations"]     # not a whole copy: the global step's samples, the
     search_poses: int = _D["search_poses"]             # rotation search's rotations and refined poses
+    search_screen: bool = _D["search_screen"]          # a coarse search first; none lies on: no search
 
 
 def check_code(params, error=ValueError):

@@ -454,6 +454,80 @@ def register_search(suspect, original, *, spacing, rotations, poses, icp_points=
     return chosen
 
 
+SCREEN_GRID = 32        # voxels per side of the screen's rotation search (the search's is 64: an eighth of the FFTs)
+SCREEN_SCALES = (1.0, 2**0.5)   # factors on the scale hint it searches at (junk beside a copy widens its spacing)
+SCREEN_DENSE = 1.5      # the part it places: points whose 6th neighbour is within this x the median (junk out)
+SCREEN_PROBE = 500      # suspect points of its short ICP from each coarse pose
+SCREEN_KEPT = 3         # of those, refined at the ICP subsample's resolution, best first
+SCREEN_NEAR = 0.3       # a pose lays the suspect on the original: this share of it within one spacing, ...
+SCREEN_EXCESS = 0.5     # ... or its squared distance to the tangent planes beyond both roughnesses at most this
+                        # (spacings^2): calibrated on the leak benchmark, bench/coarse_screen.py
+
+
+def search_screen(suspect, original, *, spacing, rotations, poses, normals=None, seen=None):
+    """Whether the rotation search can lay a part on the original: a coarse search of its own first.
+
+    :func:`register_search` costs an innocent candidate more than any other
+    step, and finds nothing there.  This screen runs the same search on a
+    grid of :data:`SCREEN_GRID` voxels, for the suspect's densest points
+    (:data:`SCREEN_DENSE`: junk beside a copy would widen its spacing and
+    so shrink the scale hint), at the scale hint and
+    :data:`SCREEN_SCALES` times it, refines each of its ``poses // 2`` best
+    coarse poses per scale by a short ICP on :data:`SCREEN_PROBE` points, and
+    the :data:`SCREEN_KEPT` best of all (as :func:`overlap_order` orders) on
+    the ICP subsample, to the tangent planes.  The search is worth running
+    where one of them lays the suspect on the surface: :data:`SCREEN_NEAR`
+    of it within one spacing, or as close to the tangent planes as the
+    roughness of both allows (:data:`SCREEN_EXCESS`; a noisy copy).
+
+    Parameters
+    ----------
+    suspect : (n, 3) float
+    original : (m, 3) float
+    spacing : float
+        Median nearest-neighbour distance of the original.
+    rotations, poses : int
+        ``detection.search_rotations`` and ``detection.search_poses``.
+    normals : (m, 3) float, optional
+    seen : list, optional
+        Filled with ``(near, excess)`` of each pose refined, ``excess`` in
+        squared spacings (:func:`registration.closeness`), until one passes.
+
+    Returns
+    -------
+    bool
+        False where no pose lies on the original (the search is skipped); True
+        also where the suspect's spacing gives no scale (the search decides).
+    """
+    ref = _original(original, spacing, 4000, normals)
+    dense = dense_part(suspect, factor=SCREEN_DENSE)
+    scale = scale_hint(dense, spacing)
+    if scale is None:
+        return True
+    probe = dense[:: max(1, len(dense) // SCREEN_PROBE)]
+    sub = dense[:: max(1, len(dense) // 3000)]
+    quick, refined = [], set()
+    for factor in SCREEN_SCALES:
+        for _, start in registration.rotation_search(dense, original, scale * factor, rotations=rotations,
+                                                     grid=SCREEN_GRID, top=max(1, poses // 2), max_points=1500):
+            fit = registration.refine_part(probe, ref.tree, original, start, spacing=spacing, iterations=20)
+            f, c, r = registration.overlap(registration.apply(fit, probe), ref.tree, ref.sample[:1000], 3.0 * spacing)
+            quick.append(((harmonic(f, c), r, f), fit))
+        for i in overlap_order([rank for rank, _ in quick])[:SCREEN_KEPT]:
+            if i in refined:
+                continue
+            refined.add(i)
+            fine = registration.refine_part(sub, ref.tree, original, quick[i][1], spacing=spacing, iterations=30)
+            fine = registration.refine_plane(sub, ref.tree, original, ref.normals, fine, spacing=spacing,
+                                             iterations=PLANE_ITERATIONS)
+            near, excess = registration.closeness(sub, ref.tree, fine, spacing, ref.normals)
+            if seen is not None:
+                seen.append((near, excess / spacing ** 2))
+            if near >= SCREEN_NEAR or excess <= SCREEN_EXCESS * spacing ** 2:
+                return True
+    return False
+
+
 def polish(suspect, original, transform, *, spacing, normals=None):
     """A part's registration after point-to-plane ICP (:func:`registration.refine_plane`), if that ranks better.
 

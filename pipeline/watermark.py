@@ -987,6 +987,10 @@ def register(suspect, reference, spacing, detect_params, tree, normals=None, *, 
         ranked.append(features.overlap_of(tried[-1], suspect, reference, spacing))
         best = tried[features.best_overlap(ranked)]
         search = features.needs_search(best, suspect, reference, spacing)
+    if search and detect_params.search_screen and not features.search_screen(
+            suspect, reference, spacing=spacing, rotations=detect_params.search_rotations,
+            poses=detect_params.search_poses, normals=normals):
+        search = False           # a coarse search lays it on the original nowhere: the full one would not
     if search:
         # a part of a near solid of revolution: its axis and profile, then the turn about the axis
         turned = _revolution_pose(suspect, reference, spacing, tree, normals)

@@ -394,6 +394,37 @@ def test_the_quick_steps_settle_a_whole_copy_and_leave_a_crop_to_the_deep_ones()
                  deep=False)
 
 
+def test_the_search_screen_passes_parts_of_the_original_and_stops_another_shape():
+    # the coarse search before the rotation search: a turned, rescaled crop, the same crop with noise, and a
+    # copy among junk (its spacing widened by the junk) lie on the original somewhere; a box does not
+    shape = demo.procedural_shape("blob", 6000, seed=8) * 20
+    spacing = float(np.median(nearest_spacing(shape)))
+    rng = np.random.default_rng(5)
+    rot = attacks.random_rotation(rng)
+    part = attacks.similarity(attacks.crop(shape, 0.3, rng), rot, 3.0, [4.0, -1.0, 2.0])
+    noisy = attacks.apply_chain(attacks.similarity(attacks.crop(shape, 0.5, rng), rot, 3.0, [4.0, -1.0, 2.0]),
+                                [("noise", 0.003)], rng)
+    junk = attacks.outliers(attacks.similarity(shape, rot, 0.5, [1.0, 2.0, 3.0]), 0.5, rng)
+    box = attacks.box(np.random.default_rng(99), 3000, sides=(3.0, 2.0, 1.0)) * 20
+
+    def screen(suspect, seen=None):
+        return features.search_screen(suspect, shape, spacing=spacing, rotations=EFFORT.search_rotations,
+                                      poses=EFFORT.search_poses, seen=seen)
+
+    for suspect in (part, noisy, junk):
+        seen = []
+        assert screen(suspect, seen)
+        near, excess = seen[-1]
+        assert near >= features.SCREEN_NEAR or excess <= features.SCREEN_EXCESS
+    seen = []
+    assert not screen(box, seen)
+    # every pose it refined (both scales, the best few of each) lies off the surface, by both measures
+    assert len(seen) >= features.SCREEN_KEPT
+    assert all(near < features.SCREEN_NEAR and excess > features.SCREEN_EXCESS for near, excess in seen)
+    # no spacing, no scale: the search itself decides
+    assert screen(np.repeat(shape[:1], 100, axis=0))
+
+
 def test_the_rotation_search_declines_a_suspect_without_spacing():
     shape = demo.procedural_shape("blob", 2000, seed=1) * 20
     spacing = float(np.median(nearest_spacing(shape)))

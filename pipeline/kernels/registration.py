@@ -35,7 +35,7 @@ __all__ = [
     "Similarity", "apply", "umeyama", "principal_frame", "register_covariance", "symmetry_axes", "fine_turns",
     "icp_similarity", "register_robust", "umeyama_batch", "ransac_similarity", "overlap",
     "refine_part", "refine_plane", "rotation_search", "connected_parts", "separate_objects", "shape_signature",
-    "poses_alike", "lies_on", "roughness", "distinct_poses",
+    "poses_alike", "lies_on", "closeness", "roughness", "distinct_poses",
 ]
 
 MAX_STEP = 0.5   # refine_plane: largest scale change and rotation (rad) of one linearised step
@@ -738,16 +738,49 @@ def lies_on(points, tree, pose, spacing, normals=None):
     bool
     """
     aligned = apply(pose, points)
-    dist, idx = tree.query(aligned, distance_upper_bound=3.0 * spacing)
-    inside = dist < 3.0 * spacing
-    if not len(aligned) or inside.mean() < POSES_FIT:
+    dist, _ = tree.query(aligned, distance_upper_bound=3.0 * spacing)
+    if not len(aligned) or (dist < 3.0 * spacing).mean() < POSES_FIT:
         return False
     if normals is None:
         return True
+    return closeness(points, tree, pose, spacing, normals)[1] <= (POSES_CLOSE * spacing) ** 2
+
+
+def closeness(points, tree, pose, spacing, normals):
+    """How closely ``pose`` lays ``points`` on the original: near it, and on its tangent planes.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+        The suspect (or a subsample), in its own coordinates.
+    tree : cKDTree (or any tree with its ``query`` and ``data``)
+        Over the original points.
+    pose : Similarity
+    spacing : float
+        Median nearest-neighbour distance of the original.
+    normals : (m, 3) float
+        Unit normals of the original, row for row with ``tree.data``.
+
+    Returns
+    -------
+    near : float
+        Share of ``points`` within one spacing of an original point.
+    excess : float
+        Mean squared distance of the points within 3 spacings to the tangent
+        plane at their nearest original point, less the :func:`roughness` of
+        the suspect (all its points: outliers only make it rougher) and of
+        the original, squared (in the original's units, squared); inf where
+        none is within 3 spacings.
+    """
+    aligned = apply(pose, points)
+    dist, idx = tree.query(aligned, distance_upper_bound=3.0 * spacing)
+    inside = dist < 3.0 * spacing
+    near = float((dist < spacing).mean()) if len(aligned) else 0.0
+    if not inside.any():
+        return near, float("inf")
     off = np.einsum("ki,ki->k", aligned[inside] - tree.data[idx[inside]], normals[idx[inside]])
-    # the roughness of all its points: outliers only make it rougher, and let more poses be read
     allowed = roughness(aligned) ** 2 + roughness(tree.data, tree=tree) ** 2
-    return float(np.mean(off ** 2)) - allowed <= (POSES_CLOSE * spacing) ** 2
+    return near, float(np.mean(off ** 2)) - allowed
 
 
 def roughness(points, k=16, most=1500, tree=None):

@@ -330,6 +330,8 @@ def witness_settings(detect_params):
         return None
     fields = {k: getattr(detect_params, k) for k in ("registration", "ransac_iterations", "search_rotations",
                                                        "search_poses")}
+    if detect_params.search_screen:     # what a deep step finds depends on it (off: the digest as before it)
+        fields["search_screen"] = True
     return hashlib.sha256(json.dumps({**fields, "format": HOLDING_FORMAT}, sort_keys=True).encode()).hexdigest()
 
 

@@ -293,3 +293,12 @@ def test_lies_on_tells_a_copy_noisy_or_resampled_from_a_shape_spread_through_the
     assert np.sqrt(np.mean(off ** 2)) > registration.POSES_CLOSE * spacing
     far = registration.Similarity(np.eye(3), 1.0, np.array([0.0, 0.0, 25.0]))        # most of it off the original
     assert not registration.lies_on(part, tree, far, spacing, normals)
+    # what lies_on tests, as numbers: the share within one spacing, and the excess over the roughness
+    near, excess = registration.closeness(part, tree, identity, spacing, normals)
+    assert near > 0.3 and excess < 0.01 * spacing ** 2      # other samples: half within a spacing, all on it
+    near, excess = registration.closeness(noisy, tree, identity, spacing, normals)
+    assert near < 0.9 and excess <= (registration.POSES_CLOSE * spacing) ** 2
+    near, excess = registration.closeness(band, tree, identity, spacing, normals)
+    assert near < 0.3 and excess > (registration.POSES_CLOSE * spacing) ** 2
+    assert registration.closeness(part, tree, far, spacing, normals)[0] < 0.5
+    assert registration.closeness(part + 1e3, tree, identity, spacing, normals) == (0.0, float("inf"))
