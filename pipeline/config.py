@@ -186,9 +186,9 @@ DETECTION = _section("Detection (paper, section 2.2, Extraction).", {
     "search_poses": _p("integer", 48,
                        "Best poses of that search refined by ICP.", minimum=1, maximum=10_000),
     "search_screen": _p("boolean", True,
-                        "Before that search, a coarse one of its own (a 32^3 grid; 1-3 s against 8-10 s) must lay the part "
-                        "on the original somewhere; where none does, the search is skipped (robust "
-                        "registration).  Calibrated on the leak benchmark."),
+                        "Before that search, a coarse one of its own (a 32^3 grid; 1-3 s against 8-10 s) "
+                        "must lay the part on the original somewhere; where none does, the search is "
+                        "skipped (robust registration).  Calibrated on the leak benchmark."),
     "epsilon": _p("number", 1e-6,
                   "Largest probability of accusing any innocent recipient, per suspect: a recipient is "
                   "named only when its fingerprint score clears the threshold this sets for the number "
