@@ -16,7 +16,8 @@ here may never meet it there).  One JSON line per check goes to
 ``python bench/coarse_screen.py summary`` prints the leaks it stops (its
 miss rate, at most), its least margin per attack, the innocent checks it
 stops, and its seconds.  ``COARSE_SET=rotations=1000,poses=48`` sets the
-registration effort it is given.
+registration effort it is given; ``COARSE_ONLY=leak-001,unrelated`` measures
+only the suspects whose names start so.
 """
 
 from __future__ import annotations

@@ -738,12 +738,13 @@ def lies_on(points, tree, pose, spacing, normals=None):
     bool
     """
     aligned = apply(pose, points)
-    dist, _ = tree.query(aligned, distance_upper_bound=3.0 * spacing)
-    if not len(aligned) or (dist < 3.0 * spacing).mean() < POSES_FIT:
+    dist, idx = tree.query(aligned, distance_upper_bound=3.0 * spacing)
+    inside = dist < 3.0 * spacing
+    if not len(aligned) or inside.mean() < POSES_FIT:
         return False
     if normals is None:
         return True
-    return closeness(points, tree, pose, spacing, normals)[1] <= (POSES_CLOSE * spacing) ** 2
+    return _plane_excess(aligned, inside, idx, tree, normals) <= (POSES_CLOSE * spacing) ** 2
 
 
 def closeness(points, tree, pose, spacing, normals):
@@ -768,19 +769,23 @@ def closeness(points, tree, pose, spacing, normals):
     excess : float
         Mean squared distance of the points within 3 spacings to the tangent
         plane at their nearest original point, less the :func:`roughness` of
-        the suspect (all its points: outliers only make it rougher) and of
-        the original, squared (in the original's units, squared); inf where
-        none is within 3 spacings.
+        the suspect and of the original, squared (what :func:`lies_on` bounds;
+        in the original's units, squared); inf where none is within 3 spacings.
     """
     aligned = apply(pose, points)
     dist, idx = tree.query(aligned, distance_upper_bound=3.0 * spacing)
     inside = dist < 3.0 * spacing
     near = float((dist < spacing).mean()) if len(aligned) else 0.0
-    if not inside.any():
-        return near, float("inf")
+    return near, (_plane_excess(aligned, inside, idx, tree, normals) if inside.any() else float("inf"))
+
+
+def _plane_excess(aligned, inside, idx, tree, normals):
+    """Mean squared distance of ``aligned[inside]`` to the tangent planes at their nearest original points
+    (``idx``), less the roughness of all of ``aligned`` (outliers only make it rougher) and of the original,
+    squared."""
     off = np.einsum("ki,ki->k", aligned[inside] - tree.data[idx[inside]], normals[idx[inside]])
     allowed = roughness(aligned) ** 2 + roughness(tree.data, tree=tree) ** 2
-    return near, float(np.mean(off ** 2)) - allowed
+    return float(np.mean(off ** 2)) - allowed
 
 
 def roughness(points, k=16, most=1500, tree=None):
