@@ -37,7 +37,7 @@ from .nearest import NearestTree
 __all__ = [
     "fpfh", "voxel_for", "match", "register_global", "GlobalResult",
     "FeatureIndex", "build_index", "describe", "describe_scales", "train_ivf", "fold_fpfh", "fold_queries", "nearest_exact", "geometry_hash", "harmonic", "best_overlap", "overlap_order", "overlap_of", "dense_part", "median_spacing", "scale_hint",
-    "suspect_views", "dense_view", "polish",
+    "suspect_views", "dense_view", "polish", "struck_out",
 ]
 
 NORMAL_RADIUS = 2.0     # voxels
@@ -687,6 +687,11 @@ QUERY_SCALES = (1.0, 2**-0.5, 0.5, 2**0.5)   # suspect voxel factors (fewer poin
 # exact.
 IVF_MIN = 20_000      # index rows from which the search goes through a faiss IVF
 IVF_PROBE = 16        # cells searched per query (of :func:`ivf_cells`)
+VOTE_RATIO = 0.9      # Lowe's ratio test across assets (:meth:`FeatureIndex.votes`)
+VOTE_NEIGHBOURS = 8   # nearest rows a descriptor's ratio test looks among
+VOTE_CHUNK = 1024     # descriptors searched at once
+BACKGROUND_POINTS = 20000   # points of the seeded background geometry (:func:`background_votes`)
+BACKGROUND_WIDE = 64  # nearest rows kept per background descriptor, from which one asset's are struck out
 IVF_GRAPH_SEARCH = 64  # candidates the HNSW graph of the cells keeps while finding a query's cells
 IVF_CELL_ROWS = 1024  # most rows a cell holds on average, past sqrt(N) (a million rows): the search stays flat
 IVF_ITERATIONS = 10   # k-means iterations of the coarse quantizer
@@ -924,7 +929,7 @@ class FeatureIndex:
         shapes : list of (V_i, D2_BINS) float, optional, per asset
         """
         self._refuse_indexed(keys)
-        self._priors_without = {}                      # every asset's background share changes with the rows
+        self._forget_background()                      # every asset's background share changes with the rows
         faiss = _faiss() if self.ivf is not None else None
         if faiss is not None and not isinstance(faiss.downcast_InvertedLists(self.ivf.invlists),
                                                 faiss.ArrayInvertedLists):
@@ -988,7 +993,12 @@ class FeatureIndex:
         if self.ivf is None and self.n_rows >= IVF_MIN:
             trained = self.with_ivf()
             self.features, self.ivf = trained.features, trained.ivf
+            self._forget_background()
         self.prior = background_votes(self)
+
+    def _forget_background(self):
+        """Drop what :meth:`_prior_without` kept: the rows or their search changed."""
+        self._priors_without, self._background_wide = {}, None
 
     def shape_distances(self, points, whole=False):
         """Per asset, the least D2 distance between any view of the suspect and any of the asset.
@@ -1024,13 +1034,44 @@ class FeatureIndex:
         return out, out_whole
 
     def _prior_without(self, key):
-        """:func:`background_votes` with ``key`` left out, kept per asset until :meth:`add` changes the rows."""
+        """:func:`background_votes` with ``key`` left out, kept per asset until :meth:`add` changes the rows.
+
+        Every asset's is read off one wider search of the background
+        (:meth:`_background_lists`): a query's nearest rows outside ``key``
+        are its nearest rows with ``key``'s struck out, wherever the wider
+        list keeps enough of them.  The few queries whose list does not are
+        searched again without ``key`` (:meth:`nearest`).
+        """
         kept = getattr(self, "_priors_without", None)
         if kept is None:
             kept = self._priors_without = {}
         if key not in kept:
-            kept[key] = background_votes(self, without=key)
+            share, asset, k = np.zeros(len(self.keys)), self.keys.index(key), min(VOTE_NEIGHBOURS, self.n_rows)
+            lists, complete = self._background_lists()
+            for feats, top, val in lists:
+                top, val, short = struck_out(top, val, self.owner, asset, k, complete)
+                if short.any():
+                    top[short], val[short] = self.nearest(feats[short], k, without=key)
+                share += self._ratio_votes(top, val) / len(feats)
+            kept[key] = share / max(len(lists), 1)
         return kept[key]
+
+    def _background_lists(self):
+        """The background's descriptors and their :data:`BACKGROUND_WIDE` nearest rows, searched once per index.
+
+        Returns
+        -------
+        lists : list of (features (m, 33) float32, top (m, w) int, similarity (m, w) float)
+        complete : bool
+            Whether each list holds every index row (w is all of them).
+        """
+        if getattr(self, "_background_wide", None) is None:
+            wide, lists = min(BACKGROUND_WIDE, self.n_rows), []
+            for feats in _background(BACKGROUND_POINTS, 0):
+                found = [self.nearest(feats[lo:lo + VOTE_CHUNK], wide) for lo in range(0, len(feats), VOTE_CHUNK)]
+                lists.append((feats, np.vstack([t for t, _ in found]), np.vstack([v for _, v in found])))
+            self._background_wide = (lists, wide == self.n_rows)
+        return self._background_wide
 
     def _cumulative_shapes(self):
         """``shapes``' cumulative histograms and where each run of one owner's rows starts, kept while
@@ -1077,7 +1118,8 @@ class FeatureIndex:
         h = geometry_hash(points)
         return [k for k, other in zip(self.keys, self.hashes) if other == h]
 
-    def votes(self, features, *, ratio=0.9, chunk=1024, neighbours=8, probe=IVF_PROBE, without=None):
+    def votes(self, features, *, ratio=VOTE_RATIO, chunk=VOTE_CHUNK, neighbours=VOTE_NEIGHBOURS, probe=IVF_PROBE,
+              without=None):
         """Votes per asset of one set of suspect descriptors.
 
         Each descriptor votes for the asset of its nearest index descriptor
@@ -1096,12 +1138,18 @@ class FeatureIndex:
         neighbours = min(neighbours, self.n_rows)
         for lo in range(0, len(features), chunk):
             top, val = self.nearest(features[lo:lo + chunk], neighbours, probe=probe, without=without)
-            dist = np.sqrt(np.maximum(2.0 - 2.0 * val, 0.0))            # inf where no row was found
-            owners = np.where(top >= 0, self.owner[top], -1)
-            other = owners != owners[:, :1]
-            d_other = np.where(other, dist, np.inf).min(axis=1)
-            ok = dist[:, 0] < ratio * d_other
-            np.add.at(out, owners[ok, 0], 1.0)
+            out += self._ratio_votes(top, val, ratio)
+        return out
+
+    def _ratio_votes(self, top, val, ratio=VOTE_RATIO):
+        """Votes per asset of queries' nearest rows (:meth:`nearest`'s answer): the ratio test of :meth:`votes`."""
+        out = np.zeros(len(self.keys))
+        dist = np.sqrt(np.maximum(2.0 - 2.0 * val, 0.0))            # inf where no row was found
+        owners = np.where(top >= 0, self.owner[top], -1)
+        other = owners != owners[:, :1]
+        d_other = np.where(other, dist, np.inf).min(axis=1)
+        ok = dist[:, 0] < ratio * d_other
+        np.add.at(out, owners[ok, 0], 1.0)
         return out
 
     def rank(self, points, top_k, without=None):
@@ -1428,7 +1476,7 @@ def _add_rows(ivf, features, chunk=1_000_000):
         ivf.add(fold_fpfh(features[lo:lo + chunk]))
 
 
-def background_votes(index, n_points=20000, rng=0, without=None):
+def background_votes(index, n_points=BACKGROUND_POINTS, rng=0, without=None):
     """Share of votes each asset draws from unrelated, seeded background geometry.
 
     The background is the procedural clutter of :func:`attacks.clutter`
@@ -1445,6 +1493,36 @@ def background_votes(index, n_points=20000, rng=0, without=None):
     for feats in described:
         share += index.votes(feats, without=without) / len(feats)
     return share / max(len(described), 1)
+
+
+def struck_out(top, val, owner, asset, k, complete=False):
+    """Each query's ``k`` nearest rows not owned by ``asset``, read off a wider list of its nearest rows.
+
+    Parameters
+    ----------
+    top : (m, w) int, nearest rows, most similar first, -1 past the last found (w >= k)
+    val : (m, w) float, their similarities, -inf where ``top`` is -1
+    owner : (N,) int, each row's asset
+    asset : int
+    k : int
+    complete : bool
+        Whether the lists hold every row, so that nothing lies past them.
+
+    Returns
+    -------
+    top : (m, k) int, -1 where fewer than k are left
+    val : (m, k) float
+    short : (m,) bool
+        Queries left with fewer than ``k`` rows while their list was full:
+        rows past the list may belong among them, so they must be searched again.
+    """
+    keep = (top >= 0) & (owner[np.maximum(top, 0)] != asset)
+    order = np.argsort(~keep, axis=1, kind="stable")[:, :k]
+    got = np.take_along_axis(keep, order, axis=1)
+    out_top = np.where(got, np.take_along_axis(top, order, axis=1), -1)
+    out_val = np.where(got, np.take_along_axis(val, order, axis=1), -np.inf).astype(val.dtype)
+    short = ~got[:, -1] & (top[:, -1] >= 0) & (not complete)
+    return out_top, out_val, short
 
 
 _BACKGROUND: "dict[tuple, list]" = {}     # (n_points, rng) -> the background's descriptors at every scale

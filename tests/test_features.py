@@ -565,7 +565,22 @@ def test_feature_matching_keeps_the_first_greatest_product_both_ways_across_chun
         np.testing.assert_array_equal(back, sim.argmax(axis=0))
 
 
-def test_an_asset_left_out_of_the_index_draws_no_votes_and_an_asset_holding_its_surface_draws_them():
+def test_struck_out_keeps_each_querys_nearest_rows_of_other_assets_and_says_where_the_list_ran_short():
+    owner = np.array([0, 0, 1, 1, 2, 2])
+    top = np.array([[0, 2, 1, 4], [0, 1, 2, -1], [0, 1, 3, 5], [2, 3, 4, 5]])
+    val = -np.arange(16, dtype=np.float32).reshape(4, 4)
+    val[1, 3] = -np.inf
+    t, v, short = features.struck_out(top, val, owner, 0, 2)
+    np.testing.assert_array_equal(t, [[2, 4], [2, -1], [3, 5], [2, 3]])
+    np.testing.assert_array_equal(v, np.array([[-1, -3], [-6, -np.inf], [-10, -11], [-12, -13]], dtype=np.float32))
+    # row 1's list ended before 2 rows were left (all found): complete; none ran short here
+    assert short.tolist() == [False, False, False, False] and v.dtype == np.float32
+    t, v, short = features.struck_out(top, val, owner, 0, 3)
+    assert short.tolist() == [True, False, True, False]          # full lists, fewer than 3 left
+    assert not features.struck_out(top, val, owner, 0, 3, complete=True)[2].any()
+
+
+def test_an_asset_left_out_of_the_index_draws_no_votes_and_an_asset_holding_its_surface_draws_them(monkeypatch):
     # a scene and a blob sold apart, the blob cut from the scene's own points: a copy of the blob
     # splits its votes between the two (the ratio test); with the blob left out, the scene draws them
     blob = demo.procedural_shape("blob", 3000, seed=5) * 10
@@ -589,3 +604,11 @@ def test_an_asset_left_out_of_the_index_draws_no_votes_and_an_asset_holding_its_
     assert (top >= 0).any() and not (ivf.owner[top[top >= 0]] == ivf.keys.index("blob")).any()
     top, _ = index.nearest(feats, 8, without="blob")
     assert not (index.owner[top[top >= 0]] == index.keys.index("blob")).any()
+    # the background share without an asset, read off one wider search of the background with its rows
+    # struck out, is what a search without it gives; at 9 rows a query, lists that run short are searched again
+    for built, key, wide in [(index, "blob", 9), (ivf, "scene", features.BACKGROUND_WIDE)]:
+        searched = features.background_votes(built, without=key)
+        assert searched.max() > 0.01 and searched[built.keys.index(key)] == 0.0
+        monkeypatch.setattr(features, "BACKGROUND_WIDE", wide)
+        built._forget_background()
+        np.testing.assert_allclose(built._prior_without(key), searched, rtol=0, atol=2e-3)
