@@ -1047,7 +1047,7 @@ class FeatureIndex:
             kept = self._priors_without = {}
         if key not in kept:
             share, asset, k = np.zeros(len(self.keys)), self.keys.index(key), min(VOTE_NEIGHBOURS, self.n_rows)
-            lists, complete = self._background_lists()
+            lists, complete = self._background_lists() if k else ([], True)      # no rows: no votes
             for feats, top, val in lists:
                 top, val, short = struck_out(top, val, self.owner, asset, k, complete)
                 if short.any():

@@ -578,6 +578,10 @@ def test_struck_out_keeps_each_querys_nearest_rows_of_other_assets_and_says_wher
     t, v, short = features.struck_out(top, val, owner, 0, 3)
     assert short.tolist() == [True, False, True, False]          # full lists, fewer than 3 left
     assert not features.struck_out(top, val, owner, 0, 3, complete=True)[2].any()
+    # an index without rows: no asset draws a background share, with one left out or not
+    empty = features.FeatureIndex(["a", "b", "c"], np.zeros((0, 33), dtype=np.float32), np.zeros(0, dtype=np.int32),
+                                  ["1", "2", "3"])
+    assert empty._prior_without("b").tolist() == features.background_votes(empty, without="b").tolist() == [0.0] * 3
 
 
 def test_an_asset_left_out_of_the_index_draws_no_votes_and_an_asset_holding_its_surface_draws_them(monkeypatch):
