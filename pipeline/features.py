@@ -799,6 +799,9 @@ class FeatureIndex:
     shape_owner: np.ndarray = None
     sources: list = None
 
+    def __post_init__(self):
+        self._forget_background()
+
     @property
     def n_rows(self):
         """Descriptors indexed (N)."""
@@ -1042,9 +1045,7 @@ class FeatureIndex:
         list keeps enough of them.  The few queries whose list does not are
         searched again without ``key`` (:meth:`nearest`).
         """
-        kept = getattr(self, "_priors_without", None)
-        if kept is None:
-            kept = self._priors_without = {}
+        kept = self._priors_without
         if key not in kept:
             share, asset, k = np.zeros(len(self.keys)), self.keys.index(key), min(VOTE_NEIGHBOURS, self.n_rows)
             lists, complete = self._background_lists() if k else ([], True)      # no rows: no votes
@@ -1065,7 +1066,7 @@ class FeatureIndex:
         complete : bool
             Whether each list holds every index row (w is all of them).
         """
-        if getattr(self, "_background_wide", None) is None:
+        if self._background_wide is None:
             wide, lists = min(BACKGROUND_WIDE, self.n_rows), []
             for feats in _background(BACKGROUND_POINTS, 0):
                 found = [self.nearest(feats[lo:lo + VOTE_CHUNK], wide) for lo in range(0, len(feats), VOTE_CHUNK)]

@@ -737,9 +737,7 @@ def lies_on(points, tree, pose, spacing, normals=None):
     -------
     bool
     """
-    aligned = apply(pose, points)
-    dist, idx = tree.query(aligned, distance_upper_bound=3.0 * spacing)
-    inside = dist < 3.0 * spacing
+    aligned, dist, idx, inside = _band(points, tree, pose, spacing)
     if not len(aligned) or inside.mean() < POSES_FIT:
         return False
     if normals is None:
@@ -772,11 +770,17 @@ def closeness(points, tree, pose, spacing, normals):
         the suspect and of the original, squared (what :func:`lies_on` bounds;
         in the original's units, squared); inf where none is within 3 spacings.
     """
-    aligned = apply(pose, points)
-    dist, idx = tree.query(aligned, distance_upper_bound=3.0 * spacing)
-    inside = dist < 3.0 * spacing
+    aligned, dist, idx, inside = _band(points, tree, pose, spacing)
     near = float((dist < spacing).mean()) if len(aligned) else 0.0
     return near, (_plane_excess(aligned, inside, idx, tree, normals) if inside.any() else float("inf"))
+
+
+def _band(points, tree, pose, spacing):
+    """``points`` laid by ``pose``, their nearest original points' distances and rows (within 3 spacings),
+    and which lie within them."""
+    aligned = apply(pose, points)
+    dist, idx = tree.query(aligned, distance_upper_bound=3.0 * spacing)
+    return aligned, dist, idx, dist < 3.0 * spacing
 
 
 def _plane_excess(aligned, inside, idx, tree, normals):
